@@ -1,0 +1,1 @@
+"""Preference learning: predictor (eq. 1, 2, 4), query selection, durable store, meta-rewards (eq. 3)."""
