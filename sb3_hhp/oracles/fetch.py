@@ -1,0 +1,48 @@
+"""A scripted (privileged) oracle for the gymnasium-robotics Fetch tasks (Reach, Push, PickAndPlace, Slide)."""
+
+import numpy as np
+
+from sb3_hhp.oracles.base import Label, Oracle, Query
+
+REQUIRED_KEYS = ("desired_goal", "goal1_achieved", "goal2_achieved")
+
+
+class FetchScriptedOracle(Oracle):
+    """Prefer the sub-goal that brings the task closer to its desired goal.
+
+    Each query's ``info`` must hold ``"desired_goal"`` (the episode's target position, metres),
+    ``"goal1_achieved"`` and ``"goal2_achieved"``: the position (metres) of the object (of the gripper
+    for Reach) in each sub-goal, i.e. the ``achieved_goal`` of the Fetch observation where the sub-goal
+    was found. The sub-goal whose achieved position is nearer (Euclidean distance) to the desired goal
+    is preferred; distances within ``equal_tolerance`` of each other give ``EQUAL``.
+
+    :param name: annotator name recorded with every answer
+    :param equal_tolerance: distance difference (metres, >= 0) under which both sub-goals are equally good
+    """
+
+    def __init__(self, name: str = "scripted", equal_tolerance: float = 1e-3) -> None:
+        if not equal_tolerance >= 0:
+            raise ValueError(f"equal_tolerance must be >= 0 metres, got {equal_tolerance}")
+        super().__init__(name)
+        self.equal_tolerance = float(equal_tolerance)
+
+    def answer(self, query: Query) -> Label:
+        missing = [key for key in REQUIRED_KEYS if key not in query.info]
+        if missing:
+            raise ValueError(
+                f"FetchScriptedOracle needs query.info keys {list(REQUIRED_KEYS)} (positions in metres); "
+                f"query {query.query_id} lacks {missing}"
+            )
+        desired = np.asarray(query.info["desired_goal"], dtype=np.float64)
+        achieved1 = np.asarray(query.info["goal1_achieved"], dtype=np.float64)
+        achieved2 = np.asarray(query.info["goal2_achieved"], dtype=np.float64)
+        if not desired.shape == achieved1.shape == achieved2.shape:
+            raise ValueError(
+                "desired_goal, goal1_achieved and goal2_achieved must have the same shape, got "
+                f"{desired.shape}, {achieved1.shape}, {achieved2.shape}"
+            )
+        distance1 = float(np.linalg.norm(achieved1 - desired))
+        distance2 = float(np.linalg.norm(achieved2 - desired))
+        if abs(distance1 - distance2) <= self.equal_tolerance:
+            return Label.EQUAL
+        return Label.FIRST if distance1 < distance2 else Label.SECOND
