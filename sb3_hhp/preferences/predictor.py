@@ -1,0 +1,541 @@
+"""The preference predictor ``p_hat(s, g)``: a siamese network trained from pairwise preferences.
+
+Section 4.1.1 of the paper: a person compares two sub-goals ``g1``, ``g2`` in a state ``s``; the
+predictor is fitted with the Bradley-Terry cross-entropy (eq. 1, 2) and its score
+``b = p_hat(s, g)`` becomes the meta-controller's preference bonus (eq. 3). Section 4.1.3: a
+dropout layer sits before every weight layer, and the spread of the score over many dropout masks
+(MC dropout, eq. 4) measures how unsure the predictor is, which decides when to ask (line 26).
+"""
+
+import contextlib
+import copy
+import math
+from collections.abc import Iterator
+from typing import Any, Optional, Union
+
+import gymnasium
+import numpy as np
+import torch
+import torch.nn.functional as F
+from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first, preprocess_obs
+from stable_baselines3.common.utils import get_device
+from torch import nn
+
+from sb3_hhp.oracles.base import Label
+
+HEADS = ("linear", "sigmoid", "relu")
+ARCHITECTURES = ("auto", "cnn", "mlp")
+SPREADS = ("std", "var")
+# Smallest image side that "auto" sends through the convolutional branch (NatureCNN's minimum).
+MIN_CNN_SIDE = 36
+
+# One-hot targets (v_0, v_1) of eq. 1; "equal" teaches (0.5, 0.5) (DESIGN.md gap 2).
+_TARGETS = {
+    Label.FIRST: (1.0, 0.0),
+    Label.SECOND: (0.0, 1.0),
+    Label.EQUAL: (0.5, 0.5),
+}
+
+
+def _check_int(name: str, value: Any, minimum: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+
+
+def _check_box(observation_space: Any) -> None:
+    if not isinstance(observation_space, gymnasium.spaces.Box):
+        raise ValueError(
+            "The preference predictor supports gymnasium.spaces.Box observation spaces only "
+            "(uint8 images, channel-last or channel-first, or vectors of any dtype); "
+            f"got {observation_space!r}. Flatten Dict/Discrete spaces into a Box first."
+        )
+
+
+class PreferenceNetwork(nn.Module):
+    """Siamese score network ``p_hat(s, g)`` of section 5.1.
+
+    Two branches of identical structure but **separate weights** read the state and the goal: for
+    images, three convolutions (32, 64, 64 filters; kernels 8, 4, 3; strides 4, 2, 1; padding 1),
+    each followed by a ReLU; for vectors (or small images), two ``Linear(hidden_dim)`` + ReLU. The
+    two feature vectors are concatenated and go through two fully connected layers of
+    ``hidden_dim`` units (ReLU) and a final ``Linear`` to one score. A ``Dropout(p=dropout)`` sits
+    immediately before every weight layer (every Conv and Linear, the first ones included), so that
+    MC dropout (eq. 4) samples the whole network.
+
+    Inputs are raw observations as the environment gives them: uint8 images, channel-last or
+    channel-first (divided by 255 by SB3's ``preprocess_obs``, channel-last ones transposed), or
+    Box vectors of any dtype (cast to float).
+
+    :param observation_space: the Box space of both states and goals
+    :param hidden_dim: units of the fully connected layers (>= 1; paper: 256)
+    :param dropout: dropout probability before every weight layer, in [0, 1) (paper: 0.1)
+    :param head: output activation: "linear" (raw score, default), "sigmoid" (the paper's output)
+        or "relu" (non-negative, for regressing returns)
+    :param architecture: "cnn" (image branches), "mlp" (vector branches) or "auto": "cnn" for
+        image spaces whose sides are all >= 36 pixels, "mlp" otherwise
+    """
+
+    def __init__(
+        self,
+        observation_space: gymnasium.spaces.Box,
+        hidden_dim: int = 256,
+        dropout: float = 0.1,
+        head: str = "linear",
+        architecture: str = "auto",
+    ) -> None:
+        super().__init__()
+        _check_box(observation_space)
+        _check_int("hidden_dim", hidden_dim, 1)
+        if not 0.0 <= float(dropout) < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {dropout!r}")
+        if head not in HEADS:
+            raise ValueError(f"head must be one of {HEADS}, got {head!r}")
+        if architecture not in ARCHITECTURES:
+            raise ValueError(f"architecture must be one of {ARCHITECTURES}, got {architecture!r}")
+
+        self.observation_space = observation_space
+        self.hidden_dim = int(hidden_dim)
+        self.dropout = float(dropout)
+        self.head_name = head
+        self.is_image = is_image_space(observation_space)
+        self.channels_first = self.is_image and is_image_space_channels_first(observation_space)
+        if self.is_image:
+            shape = observation_space.shape
+            self.image_chw = (shape[0], shape[1], shape[2]) if self.channels_first else (shape[2], shape[0], shape[1])
+        if architecture == "auto":
+            big_enough = self.is_image and min(self.image_chw[1:]) >= MIN_CNN_SIDE
+            architecture = "cnn" if big_enough else "mlp"
+        elif architecture == "cnn" and not self.is_image:
+            raise ValueError(
+                "architecture='cnn' needs an image space: a uint8 Box of shape (H, W, C) or (C, H, W) with "
+                f"bounds [0, 255]; got {observation_space!r}. Use architecture='mlp' or 'auto'."
+            )
+        self.architecture = architecture
+
+        self.state_branch = self._make_branch()
+        self.goal_branch = self._make_branch()
+        n_features = self._branch_features()
+        p = self.dropout
+        self.head = nn.Sequential(
+            nn.Dropout(p),
+            nn.Linear(2 * n_features, self.hidden_dim),
+            nn.ReLU(),
+            nn.Dropout(p),
+            nn.Linear(self.hidden_dim, self.hidden_dim),
+            nn.ReLU(),
+            nn.Dropout(p),
+            nn.Linear(self.hidden_dim, 1),
+        )
+        self.output_activation = {"linear": nn.Identity(), "sigmoid": nn.Sigmoid(), "relu": nn.ReLU()}[head]
+
+    def _make_branch(self) -> nn.Sequential:
+        p = self.dropout
+        if self.architecture == "cnn":
+            n_channels = self.image_chw[0]
+            return nn.Sequential(
+                nn.Dropout(p),
+                nn.Conv2d(n_channels, 32, kernel_size=8, stride=4, padding=1),
+                nn.ReLU(),
+                nn.Dropout(p),
+                nn.Conv2d(32, 64, kernel_size=4, stride=2, padding=1),
+                nn.ReLU(),
+                nn.Dropout(p),
+                nn.Conv2d(64, 64, kernel_size=3, stride=1, padding=1),
+                nn.ReLU(),
+                nn.Flatten(),
+            )
+        n_input = int(np.prod(self.observation_space.shape))
+        return nn.Sequential(
+            nn.Dropout(p),
+            nn.Linear(n_input, self.hidden_dim),
+            nn.ReLU(),
+            nn.Dropout(p),
+            nn.Linear(self.hidden_dim, self.hidden_dim),
+            nn.ReLU(),
+        )
+
+    def _branch_features(self) -> int:
+        if self.architecture == "mlp":
+            return self.hidden_dim
+        try:
+            with torch.no_grad():
+                return int(self.state_branch(torch.zeros(1, *self.image_chw)).shape[1])
+        except RuntimeError as error:
+            raise ValueError(
+                f"Images of shape {self.observation_space.shape} are too small for the convolutional branch; "
+                "use architecture='mlp' or 'auto'"
+            ) from error
+
+    def preprocess(self, obs: torch.Tensor) -> torch.Tensor:
+        """Turn a batch of raw observations (B, *obs_shape) into the branch input (float, images in [0, 1])."""
+        if tuple(obs.shape[1:]) != tuple(self.observation_space.shape):
+            raise ValueError(
+                f"Expected a batch of observations of shape (B, {', '.join(map(str, self.observation_space.shape))}), "
+                f"got {tuple(obs.shape)}"
+            )
+        obs = preprocess_obs(obs, self.observation_space)
+        if self.architecture == "cnn":
+            return obs if self.channels_first else obs.permute(0, 3, 1, 2)
+        return obs.flatten(start_dim=1)
+
+    def forward(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
+        """Scores ``p_hat(s, g)``.
+
+        :param states: raw states (B, *obs_shape), or (1, *obs_shape) to pair one state with every goal
+        :param goals: raw goal observations (B, *obs_shape), or (1, *obs_shape)
+        :return: the scores, shape (B,)
+        """
+        state_features = self.state_branch(self.preprocess(states))
+        goal_features = self.goal_branch(self.preprocess(goals))
+        if state_features.shape[0] != goal_features.shape[0]:
+            if state_features.shape[0] == 1:
+                state_features = state_features.expand(goal_features.shape[0], -1)
+            elif goal_features.shape[0] == 1:
+                goal_features = goal_features.expand(state_features.shape[0], -1)
+            else:
+                raise ValueError(
+                    f"states and goals need the same batch size (or one of them 1), got "
+                    f"{state_features.shape[0]} and {goal_features.shape[0]}"
+                )
+        features = torch.cat([state_features, goal_features], dim=1)
+        return self.output_activation(self.head(features)).squeeze(-1)
+
+
+class PreferencePredictor:
+    """The preference predictor ``p_hat`` with its preference buffer ``R`` (Algorithm 1, lines 25-27).
+
+    It scores (state, sub-goal) pairs (the bonus ``b``), measures its own uncertainty by MC dropout
+    (eq. 4) and trains on labelled tuples ``(s, g1, g2, v)`` with the Bradley-Terry loss (eq. 1, 2).
+
+    Randomness (initial weights, dropout masks, minibatch order) comes from the predictor's own
+    generators, derived from ``seed``; it neither reads nor disturbs the global torch RNG, so a
+    seeded predictor is reproducible whatever else draws random numbers.
+
+    :param observation_space: the Box space of states and goal observations
+    :param hidden_dim: units of the fully connected layers (paper: 256)
+    :param dropout: dropout probability before every weight layer, in [0, 1) (paper: 0.1)
+    :param n_masks: number of dropout masks for the confidence (eq. 4), >= 1 (paper: 500)
+    :param head: output activation of the network: "linear", "sigmoid" (the paper's) or "relu"
+    :param spread: "var" (eq. 4 as written: variance over masks) or "std" (its square root, the
+        default, so that t_qry 0.26 / 0.42 are reachable; DESIGN.md gap 1)
+    :param learning_rate: Adam learning rate, > 0 (paper: 1e-3)
+    :param batch_size: minibatch size for training, >= 1 (paper: 128)
+    :param n_epochs: epochs over the buffer per :meth:`train` call, >= 1 (paper: 4)
+    :param buffer_size: capacity of the FIFO preference buffer ``R``, >= 1 (paper: the query budget)
+    :param mask_batch_size: most rows (input x mask) sent through the network at once by
+        :meth:`confidence` and :meth:`score`, >= 1; lower it for image inputs (one 84x84x4 frame
+        pair is about 0.2 MB of float input, so e.g. 2,000 rows on a small machine)
+    :param architecture: "auto", "cnn" or "mlp" (see :class:`PreferenceNetwork`)
+    :param device: torch device ("cpu", "cuda", "auto")
+    :param seed: seed of the predictor's generators; None draws one from the global torch RNG
+        (so SB3's ``set_random_seed`` still makes runs reproducible)
+    """
+
+    def __init__(
+        self,
+        observation_space: gymnasium.spaces.Box,
+        hidden_dim: int = 256,
+        dropout: float = 0.1,
+        n_masks: int = 500,
+        head: str = "linear",
+        spread: str = "std",
+        learning_rate: float = 1e-3,
+        batch_size: int = 128,
+        n_epochs: int = 4,
+        buffer_size: int = 200,
+        mask_batch_size: int = 50_000,
+        architecture: str = "auto",
+        device: Union[str, torch.device] = "cpu",
+        seed: Optional[int] = None,
+    ) -> None:
+        _check_box(observation_space)
+        _check_int("n_masks", n_masks, 1)
+        _check_int("batch_size", batch_size, 1)
+        _check_int("n_epochs", n_epochs, 1)
+        _check_int("buffer_size", buffer_size, 1)
+        _check_int("mask_batch_size", mask_batch_size, 1)
+        if not float(learning_rate) > 0:
+            raise ValueError(f"learning_rate must be > 0, got {learning_rate!r}")
+        if spread not in SPREADS:
+            raise ValueError(f"spread must be one of {SPREADS}, got {spread!r}")
+        if seed is not None:
+            _check_int("seed", seed, 0)
+
+        self.observation_space = observation_space
+        self.dropout = float(dropout)
+        self.n_masks = int(n_masks)
+        self.spread = spread
+        self.learning_rate = float(learning_rate)
+        self.batch_size = int(batch_size)
+        self.n_epochs = int(n_epochs)
+        self.buffer_size = int(buffer_size)
+        self.mask_batch_size = int(mask_batch_size)
+        self.device = get_device(device)
+
+        if seed is None:
+            seed = int(torch.randint(0, 2**31 - 1, (1,)).item())
+        self.seed = int(seed)
+        self._np_rng = np.random.default_rng(self.seed)
+        self._cpu_rng_state = torch.Generator().manual_seed(self.seed).get_state()
+        self._cuda_rng_state: Optional[torch.Tensor] = None
+        if self.device.type == "cuda":
+            self._cuda_rng_state = torch.Generator(device=self.device).manual_seed(self.seed).get_state()
+
+        with self._torch_rng():
+            self.network = PreferenceNetwork(observation_space, hidden_dim, dropout, head, architecture)
+        self.network.to(self.device).eval()
+        self.optimizer = torch.optim.Adam(self.network.parameters(), lr=self.learning_rate)
+
+        # The preference buffer R (FIFO): raw observations as the env gives them.
+        shape, dtype = observation_space.shape, observation_space.dtype
+        self._states = np.zeros((self.buffer_size, *shape), dtype=dtype)
+        self._goals1 = np.zeros((self.buffer_size, *shape), dtype=dtype)
+        self._goals2 = np.zeros((self.buffer_size, *shape), dtype=dtype)
+        self._labels = np.zeros(self.buffer_size, dtype=np.int64)
+        self._targets = np.zeros((self.buffer_size, 2), dtype=np.float32)
+        self._pos = 0
+        self._size = 0
+
+    # ------------------------------------------------------------------ randomness
+    def _cuda_index(self) -> int:
+        return self.device.index if self.device.index is not None else torch.cuda.current_device()
+
+    @contextlib.contextmanager
+    def _torch_rng(self) -> Iterator[None]:
+        """Run torch's random ops on the predictor's own generator state, leaving the global one untouched."""
+        cuda = self._cuda_rng_state is not None
+        with torch.random.fork_rng(devices=[self._cuda_index()] if cuda else []):
+            torch.set_rng_state(self._cpu_rng_state)
+            if cuda:
+                torch.cuda.set_rng_state(self._cuda_rng_state, self._cuda_index())
+            try:
+                yield
+            finally:
+                self._cpu_rng_state = torch.get_rng_state()
+                if cuda:
+                    self._cuda_rng_state = torch.cuda.get_rng_state(self._cuda_index())
+
+    # ------------------------------------------------------------------ inputs
+    def _to_tensor(self, obs: Union[np.ndarray, torch.Tensor], name: str) -> torch.Tensor:
+        obs = torch.as_tensor(np.asarray(obs) if not isinstance(obs, torch.Tensor) else obs)
+        shape = tuple(self.observation_space.shape)
+        if tuple(obs.shape) == shape:
+            obs = obs.unsqueeze(0)
+        if tuple(obs.shape[1:]) != shape:
+            raise ValueError(f"{name} must have shape (N, {', '.join(map(str, shape))}), got {tuple(obs.shape)}")
+        return obs.to(self.device)
+
+    def _pairs(
+        self, states: Union[np.ndarray, torch.Tensor], goals: Union[np.ndarray, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor, int]:
+        states_t, goals_t = self._to_tensor(states, "states"), self._to_tensor(goals, "goals")
+        n_states, n_goals = states_t.shape[0], goals_t.shape[0]
+        if n_states != n_goals and 1 not in (n_states, n_goals):
+            raise ValueError(f"states and goals need the same length (or one of them 1), got {n_states} and {n_goals}")
+        return states_t, goals_t, max(n_states, n_goals)
+
+    # ------------------------------------------------------------------ inference
+    def score(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
+        """The preference bonus ``b = p_hat(s, g)`` (Algorithm 1, line 13), without dropout.
+
+        :param states: raw states (N, *obs_shape) (or a single one, paired with every goal)
+        :param goals: raw goal observations (N, *obs_shape) (or a single one)
+        :return: scores, shape (N,)
+        """
+        states_t, goals_t, n = self._pairs(states, goals)
+        self.network.eval()
+        scores = torch.empty(n, device=self.device)
+        with torch.no_grad():
+            for start in range(0, n, self.mask_batch_size):
+                end = min(n, start + self.mask_batch_size)
+                s = states_t if states_t.shape[0] == 1 else states_t[start:end]
+                g = goals_t if goals_t.shape[0] == 1 else goals_t[start:end]
+                scores[start:end] = self.network(s, g).expand(end - start)
+        return scores.cpu().numpy()
+
+    def confidence(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
+        """Predictive spread of the score over ``n_masks`` dropout masks (eq. 4); higher = less sure.
+
+        ``c(s, g) = E_j [p_hat^{d_j}(s, g) - p]^2`` with ``p = E_j p_hat^{d_j}(s, g)``; with
+        ``spread="std"`` its square root. Each input is repeated ``n_masks`` times along the batch
+        dimension with dropout active, so each row draws its own mask, in chunks of at most
+        ``mask_batch_size`` rows. Without dropout (or with a single mask) every mask gives the same
+        score, so the spread is 0.
+
+        :param states: raw states (N, *obs_shape) (or a single one, paired with every goal)
+        :param goals: raw goal observations (N, *obs_shape) (or a single one)
+        :return: confidences, shape (N,)
+        """
+        states_t, goals_t, n = self._pairs(states, goals)
+        if self.dropout == 0.0 or self.n_masks < 2 or n == 0:
+            return np.zeros(n, dtype=np.float32)
+        n_rows = n * self.n_masks
+        predictions = torch.empty(n_rows, device=self.device)
+        self.network.train()
+        try:
+            with torch.no_grad(), self._torch_rng():
+                for start in range(0, n_rows, self.mask_batch_size):
+                    end = min(n_rows, start + self.mask_batch_size)
+                    # row r is mask r % n_masks of input r // n_masks (repeat_interleave, chunk by chunk)
+                    inputs = torch.arange(start, end, device=self.device) // self.n_masks
+                    s = states_t[inputs if states_t.shape[0] > 1 else torch.zeros_like(inputs)]
+                    g = goals_t[inputs if goals_t.shape[0] > 1 else torch.zeros_like(inputs)]
+                    predictions[start:end] = self.network(s, g)
+        finally:
+            self.network.eval()
+        p_dj = predictions.view(n, self.n_masks).double()  # p_hat^{d_j}(s, g)
+        p = p_dj.mean(dim=1, keepdim=True)  # predictive posterior mean
+        c = ((p_dj - p) ** 2).mean(dim=1)  # eq. 4
+        if self.spread == "std":
+            c = c.sqrt()  # DESIGN.md gap 1
+        return c.float().cpu().numpy()
+
+    # ------------------------------------------------------------------ the buffer R
+    def add(self, state: np.ndarray, goal1: np.ndarray, goal2: np.ndarray, label: Any) -> bool:
+        """Store one labelled tuple ``(s, g1, g2, v)`` in the preference buffer ``R`` (FIFO).
+
+        :param state: raw state observation (*obs_shape)
+        :param goal1: raw observation of the first sub-goal (the meta-controller's choice)
+        :param goal2: raw observation of the second sub-goal
+        :param label: a :class:`~sb3_hhp.oracles.base.Label` or anything ``Label.parse`` reads
+        :return: True if stored; False for INCOMPARABLE, which is never trained on
+        """
+        label = Label.parse(label)
+        if label == Label.INCOMPARABLE:
+            return False
+        shape = tuple(self.observation_space.shape)
+        arrays = {"state": np.asarray(state), "goal1": np.asarray(goal1), "goal2": np.asarray(goal2)}
+        for name, array in arrays.items():
+            if array.shape != shape:
+                raise ValueError(f"{name} must have the observation shape {shape}, got {array.shape}")
+        self._states[self._pos] = arrays["state"]
+        self._goals1[self._pos] = arrays["goal1"]
+        self._goals2[self._pos] = arrays["goal2"]
+        self._labels[self._pos] = int(label)
+        self._targets[self._pos] = _TARGETS[label]
+        self._pos = (self._pos + 1) % self.buffer_size
+        self._size = min(self._size + 1, self.buffer_size)
+        return True
+
+    def __len__(self) -> int:
+        return self._size
+
+    # ------------------------------------------------------------------ training
+    def loss(
+        self, states: torch.Tensor, goals1: torch.Tensor, goals2: torch.Tensor, targets: torch.Tensor
+    ) -> torch.Tensor:
+        """Bradley-Terry cross-entropy (eq. 1, 2), with the network in its current mode.
+
+        :param states: raw states (B, *obs_shape)
+        :param goals1: raw observations of the first sub-goals (B, *obs_shape)
+        :param goals2: raw observations of the second sub-goals (B, *obs_shape)
+        :param targets: (v_0, v_1) per tuple (B, 2): (1, 0) FIRST, (0, 1) SECOND, (0.5, 0.5) EQUAL
+        :return: the mean loss over the batch (a scalar)
+        """
+        n = states.shape[0]
+        if goals1.shape[0] != n or goals2.shape[0] != n or tuple(targets.shape) != (n, 2):
+            raise ValueError(
+                f"loss needs B states, goals1, goals2 and (B, 2) targets, got {tuple(states.shape)}, "
+                f"{tuple(goals1.shape)}, {tuple(goals2.shape)} and {tuple(targets.shape)}"
+            )
+        scores = self.network(torch.cat([states, states]), torch.cat([goals1, goals2]))
+        logits = torch.stack([scores[:n], scores[n:]], dim=1)  # p_hat(s, g1), p_hat(s, g2)
+        log_p = F.log_softmax(logits, dim=1)  # eq. 2: log P[g1 > g2], log P[g2 > g1]
+        return -(targets.to(log_p) * log_p).sum(dim=1).mean()  # eq. 1
+
+    def _batch(self, indices: np.ndarray) -> tuple[torch.Tensor, ...]:
+        return tuple(
+            torch.as_tensor(array[indices], device=self.device)
+            for array in (self._states, self._goals1, self._goals2, self._targets)
+        )
+
+    def train(self, n_epochs: Optional[int] = None) -> dict[str, float]:
+        """Fit the predictor on the buffer ``R`` (Algorithm 1, line 27): minibatch Adam on eq. 1-2.
+
+        :param n_epochs: passes over the buffer (>= 1); None uses ``self.n_epochs`` (paper: 4)
+        :return: ``loss``: mean training loss over the minibatches of this call; ``accuracy``:
+            fraction of FIRST/SECOND tuples whose order the trained network (without dropout)
+            predicts (nan without any). Both nan, and nothing trained, when the buffer is empty.
+        """
+        if n_epochs is None:
+            n_epochs = self.n_epochs
+        _check_int("n_epochs", n_epochs, 1)
+        if self._size == 0:
+            return {"loss": math.nan, "accuracy": math.nan}
+        total_loss, total_count = 0.0, 0
+        self.network.train()
+        try:
+            with self._torch_rng():
+                for _ in range(n_epochs):
+                    order = self._np_rng.permutation(self._size)
+                    for start in range(0, self._size, self.batch_size):
+                        indices = order[start : start + self.batch_size]
+                        loss = self.loss(*self._batch(indices))
+                        self.optimizer.zero_grad()
+                        loss.backward()
+                        self.optimizer.step()
+                        total_loss += loss.item() * len(indices)
+                        total_count += len(indices)
+        finally:
+            self.network.eval()
+        return {"loss": total_loss / total_count, "accuracy": self.accuracy()}
+
+    def accuracy(self) -> float:
+        """Fraction of the buffer's FIRST/SECOND tuples ordered right by the network without dropout (nan if none)."""
+        labels = self._labels[: self._size]
+        indices = np.flatnonzero((labels == Label.FIRST) | (labels == Label.SECOND))
+        if len(indices) == 0:
+            return math.nan
+        states, goals1, goals2, _ = self._batch(indices)
+        score1 = self.score(states, goals1)
+        score2 = self.score(states, goals2)
+        first = labels[indices] == Label.FIRST
+        correct = np.where(first, score1 > score2, score2 > score1)
+        return float(correct.mean())
+
+    # ------------------------------------------------------------------ save / load
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume exactly: network, optimizer, buffer and generator states.
+
+        Holds only tensors, numbers, strings and dicts, so ``torch.load(..., weights_only=True)`` reads it.
+        """
+        size = self._size
+        return {
+            "network": copy.deepcopy(self.network.state_dict()),
+            "optimizer": copy.deepcopy(self.optimizer.state_dict()),
+            "buffer": {
+                "states": torch.from_numpy(self._states.copy()),
+                "goals1": torch.from_numpy(self._goals1.copy()),
+                "goals2": torch.from_numpy(self._goals2.copy()),
+                "labels": torch.from_numpy(self._labels.copy()),
+                "targets": torch.from_numpy(self._targets.copy()),
+                "pos": self._pos,
+                "size": size,
+            },
+            "np_rng": copy.deepcopy(self._np_rng.bit_generator.state),
+            "torch_rng": self._cpu_rng_state.clone(),
+            "cuda_rng": None if self._cuda_rng_state is None else self._cuda_rng_state.clone(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what :meth:`state_dict` saved (the predictor must be built with the same space and sizes)."""
+        buffer = state["buffer"]
+        if tuple(buffer["states"].shape) != tuple(self._states.shape):
+            raise ValueError(
+                f"The saved buffer holds {tuple(buffer['states'].shape)}, this predictor {tuple(self._states.shape)}: "
+                "build it with the same observation space and buffer_size"
+            )
+        self.network.load_state_dict(state["network"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self._states[:] = buffer["states"].numpy()
+        self._goals1[:] = buffer["goals1"].numpy()
+        self._goals2[:] = buffer["goals2"].numpy()
+        self._labels[:] = buffer["labels"].numpy()
+        self._targets[:] = buffer["targets"].numpy()
+        self._pos = int(buffer["pos"])
+        self._size = int(buffer["size"])
+        self._np_rng.bit_generator.state = copy.deepcopy(state["np_rng"])
+        self._cpu_rng_state = state["torch_rng"].clone()
+        if self._cuda_rng_state is not None and state.get("cuda_rng") is not None:
+            self._cuda_rng_state = state["cuda_rng"].clone()
+        self.network.eval()
