@@ -1,0 +1,192 @@
+"""Proportional prioritized experience replay (Schaul et al., 2016) as an SB3 replay buffer."""
+
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_hhp.dqn.sum_tree import SumTree
+
+
+class PrioritizedReplayBufferSamples(NamedTuple):
+    """
+    A batch drawn from a :class:`PrioritizedReplayBuffer`: the fields of SB3's
+    ``ReplayBufferSamples`` plus the importance-sampling weights and the buffer indices needed to
+    update the priorities afterwards.
+    """
+
+    observations: th.Tensor
+    actions: th.Tensor
+    next_observations: th.Tensor
+    dones: th.Tensor
+    rewards: th.Tensor
+    discounts: th.Tensor | None
+    weights: th.Tensor
+    indices: np.ndarray
+
+
+class PrioritizedReplayBuffer(ReplayBuffer):
+    """
+    Replay buffer with proportional prioritization (Schaul et al., 2016, "Prioritized Experience
+    Replay", https://arxiv.org/abs/1511.05952).
+
+    Transition ``i`` is drawn with probability ``P(i) = p_i^alpha / sum_k p_k^alpha`` where
+    ``p_i = |delta_i| + epsilon`` is its last absolute TD error; a new transition gets the largest
+    priority currently stored (1.0 in an empty buffer) so that it is replayed at least once soon.
+    Each draw carries the importance-sampling weight ``w_i = (N * P(i))^-beta / max_j w_j``,
+    normalised by the largest weight over *all* stored transitions (the one of the smallest
+    priority, as in the paper's reference implementation), so weights lie in ``(0, 1]``.
+
+    The sum tree stores ``p^alpha``. A transition's index is ``pos * n_envs + env_index``.
+    ``beta`` is a public attribute: a callback may anneal it towards 1 during training.
+
+    Dict observation spaces are not supported (SB3's ``ReplayBuffer`` does not store them).
+
+    :param buffer_size: Max number of transitions (over all envs), ``>= 1``.
+    :param observation_space: Observation space.
+    :param action_space: Action space.
+    :param device: PyTorch device of the sampled tensors.
+    :param n_envs: Number of parallel environments, ``>= 1``.
+    :param optimize_memory_usage: Store each observation once (see SB3's ``ReplayBuffer``); the
+        invalid transition at ``pos`` then gets priority 0 so it is never drawn.
+    :param handle_timeout_termination: Do not treat time-limit truncations as terminal.
+    :param alpha: Prioritization exponent in ``[0, 1]`` (0: uniform sampling).
+    :param beta: Importance-sampling exponent in ``[0, 1]`` (1: full correction).
+    :param epsilon: Constant ``> 0`` added to ``|delta|`` so that no transition has priority 0.
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+        alpha: float = 0.6,
+        beta: float = 0.4,
+        epsilon: float = 1e-6,
+    ) -> None:
+        if buffer_size < 1:
+            raise ValueError(f"buffer_size must be >= 1, got {buffer_size}")
+        if n_envs < 1:
+            raise ValueError(f"n_envs must be >= 1, got {n_envs}")
+        if not 0.0 <= alpha <= 1.0:
+            raise ValueError(f"alpha must be in [0, 1], got {alpha}")
+        if not 0.0 <= beta <= 1.0:
+            raise ValueError(f"beta must be in [0, 1], got {beta}")
+        if not epsilon > 0.0:
+            raise ValueError(f"epsilon must be > 0, got {epsilon}")
+        if isinstance(observation_space, spaces.Dict):
+            raise ValueError(
+                "PrioritizedReplayBuffer does not support Dict observation spaces; "
+                "flatten the observation (e.g. gymnasium.wrappers.FlattenObservation) or use a Box space"
+            )
+        super().__init__(
+            buffer_size,
+            observation_space,
+            action_space,
+            device=device,
+            n_envs=n_envs,
+            optimize_memory_usage=optimize_memory_usage,
+            handle_timeout_termination=handle_timeout_termination,
+        )
+        self.alpha = float(alpha)
+        self.beta = float(beta)
+        self.epsilon = float(epsilon)
+        self.tree = SumTree(self.buffer_size * self.n_envs)
+        # Seeded from the global NumPy state, which SB3's `set_random_seed` has fixed beforehand.
+        self._rng = np.random.default_rng(np.random.randint(0, 2**31 - 1))
+
+    def _row_indices(self, pos: int) -> np.ndarray:
+        """Flat indices of the ``n_envs`` transitions stored at row ``pos``."""
+        return pos * self.n_envs + np.arange(self.n_envs)
+
+    def add(
+        self,
+        obs: np.ndarray,
+        next_obs: np.ndarray,
+        action: np.ndarray,
+        reward: np.ndarray,
+        done: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        """
+        Store one transition per env with the largest priority currently stored (1.0 at first).
+
+        Arguments as in SB3's ``ReplayBuffer.add``.
+        """
+        new_indices = self._row_indices(self.pos)
+        super().add(obs, next_obs, action, reward, done, infos)
+        max_priority = self.tree.max_priority  # already p^alpha
+        self.tree.update(new_indices, max_priority if max_priority > 0 else 1.0)
+        if self.optimize_memory_usage and self.full:
+            # observations[pos] now holds the next observation of the transition just added, so
+            # the transition stored at `pos` is invalid until overwritten.
+            self.tree.update(self._row_indices(self.pos), 0.0)
+
+    def reset(self) -> None:
+        """Empty the buffer and zero every priority."""
+        super().reset()
+        if hasattr(self, "tree"):
+            self.tree = SumTree(self.tree.capacity)
+
+    def update_priorities(self, indices: np.ndarray, td_errors: np.ndarray | th.Tensor) -> None:
+        """
+        Set ``p_i = |delta_i| + epsilon`` for the given transitions (the tree stores ``p_i^alpha``).
+
+        :param indices: Flat buffer indices as returned in ``PrioritizedReplayBufferSamples.indices``.
+        :param td_errors: TD errors ``delta_i`` of those transitions, any shape with ``len(indices)``
+            elements (NumPy array or torch tensor).
+        """
+        if isinstance(td_errors, th.Tensor):
+            td_errors = td_errors.detach().cpu().numpy()
+        indices = np.asarray(indices).reshape(-1)
+        td_errors = np.asarray(td_errors, dtype=np.float64).reshape(-1)
+        if td_errors.shape != indices.shape:
+            raise ValueError(f"td_errors must have one value per index ({indices.size}), got {td_errors.size}")
+        priorities = (np.abs(td_errors) + self.epsilon) ** self.alpha
+        if self.optimize_memory_usage and self.full:
+            priorities[indices // self.n_envs == self.pos] = 0.0
+        self.tree.update(indices, priorities)
+
+    def sample(self, batch_size: int, env: VecNormalize | None = None) -> PrioritizedReplayBufferSamples:  # type: ignore[override]
+        """
+        Draw ``batch_size`` transitions with probability ``P(i)`` (stratified over the total).
+
+        :param batch_size: Number of transitions, ``>= 1``.
+        :param env: Associated VecNormalize to normalize the observations/rewards, if any.
+        :return: The batch, with importance-sampling weights of shape ``(batch_size, 1)`` and the
+            flat indices of the drawn transitions.
+        """
+        if self.size() == 0:
+            raise ValueError("cannot sample from an empty PrioritizedReplayBuffer; add transitions first")
+        indices, scaled_priorities = self.tree.sample(batch_size, self._rng)
+        total = self.tree.total
+        n_stored = self.size() * self.n_envs  # N (it cancels out in the normalised weight)
+        probabilities = scaled_priorities / total  # P(i) = p_i^alpha / sum_k p_k^alpha
+        min_probability = self.tree.min_priority / total
+        # w_i = (N * P(i))^-beta / max_j w_j, the max being reached at the smallest P(j)
+        weights = (n_stored * probabilities) ** (-self.beta) / (n_stored * min_probability) ** (-self.beta)
+
+        batch_inds, env_inds = np.divmod(indices, self.n_envs)
+        if self.optimize_memory_usage:
+            next_obs = self.observations[(batch_inds + 1) % self.buffer_size, env_inds, :]
+        else:
+            next_obs = self.next_observations[batch_inds, env_inds, :]
+        # Only use dones that are not due to timeouts
+        dones = self.dones[batch_inds, env_inds] * (1 - self.timeouts[batch_inds, env_inds])
+        return PrioritizedReplayBufferSamples(
+            observations=self.to_torch(self._normalize_obs(self.observations[batch_inds, env_inds, :], env)),
+            actions=self.to_torch(self.actions[batch_inds, env_inds, :]),
+            next_observations=self.to_torch(self._normalize_obs(next_obs, env)),
+            dones=self.to_torch(dones.reshape(-1, 1)),
+            rewards=self.to_torch(self._normalize_reward(self.rewards[batch_inds, env_inds].reshape(-1, 1), env)),
+            discounts=None,
+            weights=self.to_torch(weights.astype(np.float32).reshape(-1, 1)),
+            indices=indices,
+        )
