@@ -1,4 +1,5 @@
 import io
+import math
 import os
 import time
 
@@ -10,6 +11,7 @@ from sb3_hhp.oracles.base import Answer, Label, Oracle, Query
 from sb3_hhp.oracles.experts import MultiExpertOracle
 from sb3_hhp.oracles.fetch import FetchScriptedOracle
 from sb3_hhp.oracles.noisy import NoisyOracle
+from sb3_hhp.oracles.synthetic import SyntheticOracle
 from sb3_hhp.oracles.terminal import TerminalOracle, ansi_preview, parse_reply
 
 
@@ -327,3 +329,132 @@ def test_ansi_preview_colours_and_layout():
     assert lines[1].count("\x1b[38;2;255;0;0m\x1b[48;2;255;0;0m\u2580") == 4
     assert lines[1].count("\x1b[38;2;128;128;128m") == 4
     assert lines[4].startswith(" " * 4 + "  " + " " * 4 + "  ")  # red and the missing image are blank there
+
+
+# --- SyntheticOracle ------------------------------------------------------------------------------------
+
+
+def synthetic_data(n: int, seed: int = 0):
+    """Goals of two kinds: goal[0] = +1 gives returns 0 or 2 (average 1), goal[0] = -1 always 1.5.
+
+    A regression of the *average* return prefers the second kind, although the first sometimes gets more.
+    """
+    rng = np.random.default_rng(seed)
+    states = rng.uniform(-1, 1, size=(n, 3)).astype(np.float32)
+    kind = rng.integers(0, 2, size=n)
+    goals = rng.uniform(-1, 1, size=(n, 3)).astype(np.float32)
+    goals[:, 0] = np.where(kind == 0, 1.0, -1.0)
+    returns = np.where(kind == 0, 2.0 * rng.integers(0, 2, size=n), 1.5)
+    return states, goals, returns
+
+
+def test_synthetic_oracle_prefers_higher_average_return():
+    import gymnasium
+    import torch
+
+    torch.set_num_threads(1)
+    space = gymnasium.spaces.Box(-1, 1, shape=(3,), dtype=np.float32)
+    oracle = SyntheticOracle(space, hidden_dim=32, dropout=0.1, batch_size=64, n_epochs=2, seed=0)
+    states, goals, returns = synthetic_data(2000)
+    oracle.observe(states, goals, returns)
+    assert len(oracle) == 2000
+    first_mse = oracle.train()
+    for _ in range(10):
+        mse = oracle.train()
+    # the best possible MSE is the variance of the returns around their means: 1 for kind 0, 0 for kind 1
+    assert mse < first_mse and 0.35 < mse < 0.7
+    test_states, test_goals, _ = synthetic_data(200, seed=1)
+    values = oracle.predict(test_states, test_goals)
+    np.testing.assert_allclose(values[test_goals[:, 0] > 0].mean(), 1.0, atol=0.2)
+    np.testing.assert_allclose(values[test_goals[:, 0] < 0].mean(), 1.5, atol=0.2)
+    good, bad = test_goals[test_goals[:, 0] < 0], test_goals[test_goals[:, 0] > 0]
+    n_queries = min(len(good), len(bad))
+    queries = [
+        Query(state=test_states[i], goal1=0, goal2=1, goal1_obs=bad[i], goal2_obs=good[i], query_id=f"q{i}")
+        for i in range(n_queries)
+    ]
+    oracle.submit(queries)
+    answers = oracle.collect()
+    assert all(answer.annotator == "synthetic" for answer in answers)
+    assert np.mean([answer.label == Label.SECOND for answer in answers]) > 0.95
+    swapped = Query(state=test_states[0], goal1=1, goal2=0, goal1_obs=good[0], goal2_obs=bad[0])
+    assert oracle.answer(swapped) == Label.FIRST
+    same = Query(state=test_states[0], goal1=1, goal2=1, goal1_obs=good[0], goal2_obs=good[0].copy())
+    assert oracle.answer(same) == Label.EQUAL
+    # dropout is off when answering: the same query always gets the same estimate
+    np.testing.assert_array_equal(oracle.predict(test_states, test_goals), values)
+
+
+def test_synthetic_oracle_fifo_buffer_and_state_dict():
+    import gymnasium
+
+    space = gymnasium.spaces.Box(-1, 1, shape=(3,), dtype=np.float32)
+    oracle = SyntheticOracle(space, hidden_dim=8, buffer_size=1500, seed=3)
+    states, goals, returns = synthetic_data(2500)
+    for start in range(0, 2500, 700):  # crosses the growth steps and the wrap-around
+        oracle.observe(states[start : start + 700], goals[start : start + 700], returns[start : start + 700])
+    assert len(oracle) == 1500
+    saved = oracle.state_dict(include_buffer=True)
+    # the newest 1500, stored in a ring: 2500 = 1500 + 1000, so the oldest kept one sits at position 1000
+    order = (1000 + np.arange(1500)) % 1500
+    assert saved["buffer"]["pos"] == 1000
+    np.testing.assert_array_equal(saved["buffer"]["states"].numpy()[order], states[-1500:])
+    np.testing.assert_array_equal(saved["buffer"]["returns"].numpy()[order], returns[-1500:].astype(np.float32))
+    oracle.train(1)
+    saved = oracle.state_dict(include_buffer=True)
+    other = SyntheticOracle(space, hidden_dim=8, buffer_size=1500, seed=4)
+    other.load_state_dict(saved)
+    assert len(other) == 1500
+    np.testing.assert_array_equal(other.predict(states[:10], goals[:10]), oracle.predict(states[:10], goals[:10]))
+    # same generator states: the next training step is identical too
+    assert other.train(1) == oracle.train(1)
+    assert "buffer" not in oracle.state_dict()
+    with pytest.raises(ValueError, match="buffer_size"):
+        SyntheticOracle(space, hidden_dim=8, buffer_size=100).load_state_dict(saved)
+
+
+def test_synthetic_oracle_is_seeded_and_leaves_global_rng():
+    import gymnasium
+    import torch
+
+    space = gymnasium.spaces.Box(-1, 1, shape=(3,), dtype=np.float32)
+    states, goals, returns = synthetic_data(300)
+    torch.manual_seed(123)
+    expected_draw = torch.rand(1).item()
+    losses = []
+    for global_seed in (123, 456):
+        torch.manual_seed(global_seed)
+        oracle = SyntheticOracle(space, hidden_dim=8, seed=5)
+        oracle.observe(states, goals, returns)
+        losses.append(oracle.train(1))
+        if global_seed == 123:  # building and training drew nothing from the global generator
+            assert torch.rand(1).item() == expected_draw
+    assert losses[0] == losses[1]  # the oracle's own seed decides, whatever the global one
+
+
+def test_synthetic_oracle_bad_arguments():
+    import gymnasium
+
+    space = gymnasium.spaces.Box(-1, 1, shape=(3,), dtype=np.float32)
+    for kwargs, match in [
+        ({"batch_size": 0}, "batch_size"),
+        ({"n_epochs": 0}, "n_epochs"),
+        ({"buffer_size": 0}, "buffer_size"),
+        ({"learning_rate": 0.0}, "learning_rate"),
+        ({"equal_tolerance": -1.0}, "equal_tolerance"),
+        ({"dropout": 1.0}, "dropout"),
+        ({"hidden_dim": 0}, "hidden_dim"),
+        ({"head": "tanh"}, "head"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            SyntheticOracle(space, **kwargs)
+    with pytest.raises(ValueError, match="Box"):
+        SyntheticOracle(gymnasium.spaces.Discrete(3))
+    oracle = SyntheticOracle(space, hidden_dim=8)
+    with pytest.raises(ValueError, match="goals must have shape"):
+        oracle.observe(np.zeros((4, 3)), np.zeros((4, 2)), np.zeros(4))
+    with pytest.raises(ValueError, match="finite"):
+        oracle.observe(np.zeros((1, 3)), np.zeros((1, 3)), np.array([np.nan]))
+    with pytest.warns(UserWarning, match="negative returns"):
+        oracle.observe(np.zeros((1, 3)), np.zeros((1, 3)), np.array([-1.0]))
+    assert math.isnan(SyntheticOracle(space, hidden_dim=8).train())
