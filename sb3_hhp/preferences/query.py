@@ -1,0 +1,208 @@
+"""Query selection (section 4.1.3, Algorithm 1 line 26): which of an episode's (s, g) tuples to ask about.
+
+After an episode, the predictor's confidence ``c(s, g)`` (eq. 4; higher = less sure) is known for
+every (state, chosen sub-goal) tuple. A tuple is asked about when ``c > t_qry``; the second
+sub-goal ``g2`` shown next to ``g`` is the meta-controller's second choice. A query budget caps
+the total number of questions over the whole training run.
+
+Two modes:
+
+* ``"fixed"``: the paper's rule, a constant threshold ``t_qry`` (0.26 MiniGrid, 0.42 Atari/MuJoCo).
+* ``"adaptive"`` (DESIGN.md gap 3; the paper's future work): the budget is paced over training.
+  At ``num_timesteps`` out of ``total_timesteps`` the allowance is
+  ``A = floor(budget * min(1, num_timesteps / total_timesteps))`` and the quota of this call is
+  ``k = A - used``. The confidences of askable tuples are pooled in a window of the last
+  ``quantile_window`` values (this episode's included). With ``n`` askable tuples in this episode,
+  the threshold is the ``1 - min(1, k / n)`` quantile of the window: if recent confidences are
+  representative, about ``k`` of this episode's tuples lie above it, so the expected number of
+  questions matches the quota. Tuples with ``c >= threshold`` are asked, at most ``k`` of them (the
+  least confident first). A shortfall stays in the quota and lowers the next threshold, so the
+  questions keep up with the allowance (the lag is a few questions); ``used`` never exceeds it.
+  With ``k = 0`` nothing is asked (threshold ``+inf``). The last call (fewer steps left before
+  ``total_timesteps`` than the mean number of steps between calls, so no later episode is likely
+  to end in time) spends what is left of the quota on that episode's ``k`` least confident tuples,
+  so the whole budget is used by the end of training. The window quantile lags behind confidences
+  that drift (a predictor grows surer as it learns): keep ``quantile_window`` to a small part of
+  the tuples a run sees (the default 2,000 is about a tenth of a 500k-step MiniGrid run).
+"""
+
+import math
+from collections import deque
+from typing import Any, Optional
+
+import numpy as np
+
+MODES = ("fixed", "adaptive")
+
+
+class QuerySelector:
+    """Picks the tuples to ask about after an episode, within a total query budget.
+
+    :param budget: most questions over the whole training run (>= 0; paper: 50-200 MiniGrid,
+        750 MuJoCo, 3000 Atari)
+    :param threshold: ``t_qry``: ask when the confidence exceeds it (>= 0; paper: 0.26 MiniGrid,
+        0.42 Atari and MuJoCo). Used by the "fixed" mode; the "adaptive" mode starts from it
+        (``current_threshold`` before any data) and then sets its own
+    :param mode: "fixed" (the paper's constant threshold) or "adaptive" (budget paced over
+        training, threshold from a running quantile; see the module docstring)
+    :param total_timesteps: length of training in primitive steps (> 0), needed by the adaptive
+        mode; ``HhP.learn`` sets it through :meth:`set_total_timesteps`
+    :param quantile_window: number of recent confidences the adaptive quantile is taken over (>= 1)
+    """
+
+    def __init__(
+        self,
+        budget: int,
+        threshold: float = 0.26,
+        mode: str = "fixed",
+        total_timesteps: Optional[int] = None,
+        quantile_window: int = 2_000,
+    ) -> None:
+        if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < 0:
+            raise ValueError(f"query_budget must be an integer >= 0, got {budget!r}")
+        if not (isinstance(threshold, (int, float, np.number)) and threshold >= 0):
+            raise ValueError(f"threshold (t_qry) must be >= 0, got {threshold!r}")
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if isinstance(quantile_window, bool) or not isinstance(quantile_window, (int, np.integer)) or quantile_window < 1:
+            raise ValueError(f"quantile_window must be an integer >= 1, got {quantile_window!r}")
+        self._budget = int(budget)
+        self.threshold = float(threshold)
+        self.mode = mode
+        self.quantile_window = int(quantile_window)
+        self.total_timesteps: Optional[int] = None
+        if total_timesteps is not None:
+            self.set_total_timesteps(total_timesteps)
+        self._used = 0
+        self._window: deque[float] = deque(maxlen=self.quantile_window)
+        self._n_calls = 0  # adaptive select() calls, to estimate the steps between calls
+        self.current_threshold = self.threshold
+
+    @property
+    def budget(self) -> int:
+        """Most questions over the whole run."""
+        return self._budget
+
+    @property
+    def used(self) -> int:
+        """Questions selected so far."""
+        return self._used
+
+    @property
+    def remaining(self) -> int:
+        """Questions left in the budget."""
+        return self._budget - self._used
+
+    def set_total_timesteps(self, total_timesteps: int) -> None:
+        """Set the training length (primitive steps) that the adaptive mode paces the budget over.
+
+        :param total_timesteps: > 0
+        """
+        if isinstance(total_timesteps, bool) or not isinstance(total_timesteps, (int, np.integer)) or total_timesteps < 1:
+            raise ValueError(f"total_timesteps must be an integer > 0, got {total_timesteps!r}")
+        self.total_timesteps = int(total_timesteps)
+
+    def allowance(self, num_timesteps: int) -> int:
+        """Questions the adaptive mode may have asked by ``num_timesteps``: floor(budget * progress)."""
+        if self.total_timesteps is None:
+            raise ValueError(
+                "mode='adaptive' needs total_timesteps: pass it to QuerySelector or call set_total_timesteps()"
+            )
+        progress = min(1.0, num_timesteps / self.total_timesteps)
+        return min(self._budget, math.floor(self._budget * progress + 1e-9))
+
+    def select(
+        self,
+        confidences: np.ndarray,
+        goals: np.ndarray,
+        q_values: np.ndarray,
+        num_timesteps: int = 0,
+    ) -> list[tuple[int, int]]:
+        """Choose which of an episode's (s, g) tuples to ask about (Algorithm 1, line 26).
+
+        :param confidences: ``c(s, g)`` per tuple (N,), higher = less sure (eq. 4)
+        :param goals: the sub-goal ``g`` chosen in each tuple (N,), ids in [0, G)
+        :param q_values: the meta-controller's Q-values over sub-goals per tuple (N, G); invalid
+            sub-goals as ``-inf`` (NaN is treated the same way)
+        :param num_timesteps: primitive steps done so far (>= 0; used by the adaptive mode)
+        :return: ``[(tuple_index, g2), ...]`` in tuple order, ``g2`` the best sub-goal other than
+            ``g`` by Q-value; tuples without any other valid sub-goal are never asked. At most
+            ``remaining`` entries (``used`` grows by their number).
+        """
+        confidences = np.asarray(confidences, dtype=np.float64)
+        goals = np.asarray(goals)
+        q_values = np.asarray(q_values, dtype=np.float64)
+        if confidences.ndim != 1:
+            raise ValueError(f"confidences must have shape (N,), got {confidences.shape}")
+        n = confidences.shape[0]
+        if goals.shape != (n,):
+            raise ValueError(f"goals must have shape ({n},) like confidences, got {goals.shape}")
+        if q_values.ndim != 2 or q_values.shape[0] != n:
+            raise ValueError(f"q_values must have shape ({n}, G), got {q_values.shape}")
+        if n and not np.issubdtype(goals.dtype, np.integer):
+            raise ValueError(f"goals must hold integer sub-goal ids, got dtype {goals.dtype}")
+        n_goals = q_values.shape[1]
+        if n and (goals.min() < 0 or goals.max() >= n_goals):
+            raise ValueError(f"goals must be sub-goal ids in [0, {n_goals}), got {goals.min()}..{goals.max()}")
+        if np.isnan(confidences).any():
+            raise ValueError("confidences contain NaN")
+        if num_timesteps < 0:
+            raise ValueError(f"num_timesteps must be >= 0, got {num_timesteps}")
+        if self.mode == "adaptive" and self.total_timesteps is None:
+            self.allowance(num_timesteps)  # raises with the fix
+        if n == 0:
+            return []
+
+        # g2: the meta-controller's second choice, the highest-Q sub-goal other than g
+        others = np.where(np.isnan(q_values), -np.inf, q_values)
+        others[np.arange(n), goals] = -np.inf
+        second = others.argmax(axis=1)
+        askable = np.flatnonzero(others[np.arange(n), second] > -np.inf)
+        c = confidences[askable]
+
+        if self.mode == "fixed":
+            quota = max(0, self.remaining)
+            chosen = askable[c > self.threshold]  # line 26: c(s, g) > t_qry
+        else:
+            self._window.extend(c.tolist())
+            self._n_calls += 1
+            quota = max(0, self.allowance(num_timesteps) - self._used)
+            steps_per_call = num_timesteps / self._n_calls
+            last_call = self.total_timesteps - num_timesteps < steps_per_call
+            if quota == 0 or len(askable) == 0:
+                self.current_threshold = math.inf
+                chosen = askable[:0]
+            elif last_call:  # no later call expected: spend the quota on this episode's least confident tuples
+                self.current_threshold = float(np.sort(c)[::-1][min(quota, len(c)) - 1])
+                chosen = askable[c >= self.current_threshold]
+            else:
+                fraction = min(1.0, quota / len(askable))
+                self.current_threshold = float(np.quantile(np.fromiter(self._window, float), 1.0 - fraction))
+                chosen = askable[c >= self.current_threshold]
+        if len(chosen) > quota:  # keep the least confident (highest c); ties go to the earlier tuple
+            order = np.argsort(-confidences[chosen], kind="stable")
+            chosen = np.sort(chosen[order[:quota]])
+        self._used += len(chosen)
+        return [(int(i), int(second[i])) for i in chosen]
+
+    def state_dict(self) -> dict[str, Any]:
+        """The selector's progress: questions used, the adaptive window and threshold, the training length."""
+        return {
+            "used": self._used,
+            "window": list(self._window),
+            "n_calls": self._n_calls,
+            "current_threshold": self.current_threshold,
+            "total_timesteps": self.total_timesteps,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what :meth:`state_dict` saved (budget, threshold and mode stay as constructed)."""
+        used = int(state["used"])
+        if used < 0:
+            raise ValueError(f"used must be >= 0, got {used}")
+        self._used = used
+        self._window = deque((float(c) for c in state["window"]), maxlen=self.quantile_window)
+        self._n_calls = int(state.get("n_calls", 0))
+        self.current_threshold = float(state["current_threshold"])
+        if state.get("total_timesteps") is not None:
+            self.set_total_timesteps(int(state["total_timesteps"]))
