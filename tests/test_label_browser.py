@@ -1,0 +1,115 @@
+"""The labeling page driven by headless Chromium (the system's /usr/bin/chromium, never a download)."""
+
+import os
+import time
+
+import numpy as np
+import pytest
+
+from sb3_hhp.label.server import LabelServer
+from sb3_hhp.oracles.base import Label, Query
+from sb3_hhp.preferences.store import PreferenceStore
+
+pytestmark = pytest.mark.browser
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update"]
+
+
+def make_query(seed: int) -> Query:
+    rng = np.random.default_rng(seed)
+    images = [rng.integers(0, 255, (8, 8, 3), dtype=np.uint8) for _ in range(3)]
+    return Query(
+        state=np.zeros(4, np.float32),
+        goal1=seed,
+        goal2=seed + 1,
+        goal1_obs=np.zeros(4),
+        goal2_obs=np.ones(4),
+        state_image=images[0],
+        goal1_image=images[1],
+        goal2_image=images[2],
+        query_id=f"q{seed}",
+        asked_at=float(seed),
+    )
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not os.path.exists(CHROMIUM):
+        if os.environ.get("CI"):
+            pytest.fail(f"{CHROMIUM} is missing; install Debian's chromium package")
+        pytest.skip(f"{CHROMIUM} is missing")
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        yield browser
+        browser.close()
+
+
+def wait_for(condition, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        time.sleep(0.05)
+
+
+def open_page(browser, server: LabelServer, annotator: str):
+    page = browser.new_page()
+    page.errors = []
+    page.on("pageerror", lambda error: page.errors.append(error))
+    page.goto(server.url)
+    page.fill("#annotator", annotator)
+    page.press("#annotator", "Enter")
+    return page
+
+
+def test_answer_by_keyboard_and_by_click(browser):
+    store = PreferenceStore()
+    for seed in range(4):
+        store.add_query(make_query(seed))
+    with LabelServer(store, token="tok", reply_window_s=30.0) as server:
+        page = open_page(browser, server, "alice")
+        try:
+            page.wait_for_selector('#question[data-query-id="q0"]', timeout=10_000)
+            page.wait_for_selector("#btn-first:enabled", timeout=10_000)  # images shown, countdown running
+            assert page.eval_on_selector("#img-goal1", "img => img.getBoundingClientRect().width") >= 256
+            assert page.text_content("#queued") == "4"
+            page.keyboard.press("ArrowLeft")
+            page.wait_for_selector('#question[data-query-id="q1"]', timeout=10_000)
+            page.click("#btn-second")
+            page.wait_for_selector('#question[data-query-id="q2"]', timeout=10_000)
+            page.keyboard.press("=")
+            page.wait_for_selector('#question[data-query-id="q3"]', timeout=10_000)
+            page.keyboard.press("x")
+            wait_for(lambda: len(store.answered_ids()) == 4)
+            page.wait_for_function("document.getElementById('answers-mine').textContent === '4'", timeout=10_000)
+            assert page.errors == []
+        finally:
+            page.close()
+    answers = {a.query_id: (a.label, a.annotator) for _, _, a in store.answers_since(0)}
+    assert answers == {
+        "q0": (Label.FIRST, "alice"),
+        "q1": (Label.SECOND, "alice"),
+        "q2": (Label.EQUAL, "alice"),
+        "q3": (Label.INCOMPARABLE, "alice"),
+    }
+
+
+def test_the_countdown_answers_cant_tell(browser):
+    store = PreferenceStore()
+    store.add_query(make_query(0))
+    with LabelServer(store, reply_window_s=1.5) as server:
+        page = open_page(browser, server, "bob")
+        try:
+            page.wait_for_selector('#question[data-query-id="q0"]', timeout=10_000)
+            started = time.monotonic()
+            wait_for(lambda: "q0" in store.answered_ids(), timeout=10.0)  # nobody touches the page
+            assert time.monotonic() - started >= 1.0  # not before the reply window ran out
+            page.wait_for_selector("#history li", timeout=5_000)
+            assert "time ran out" in page.text_content("#history li")
+            assert page.errors == []
+        finally:
+            page.close()
+    [(_, _, answer)] = store.answers_since(0)
+    assert (answer.query_id, answer.label, answer.annotator) == ("q0", Label.INCOMPARABLE, "bob")
