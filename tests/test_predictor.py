@@ -3,6 +3,8 @@
 import io
 import itertools
 import math
+import subprocess
+import sys
 
 import gymnasium as gym
 import numpy as np
@@ -407,3 +409,9 @@ def test_bad_inputs_raise():
         predictor.confidence(random_obs(rng, 3), random_obs(rng, 2))
     with pytest.raises(ValueError, match="n_epochs"):
         predictor.train(n_epochs=0)
+
+
+def test_predictor_imports_before_the_oracles():
+    # sb3_hhp.oracles imports this module (the synthetic oracle), so it must not need sb3_hhp.oracles at import
+    code = "import sb3_hhp.preferences.predictor, sb3_hhp.oracles"
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)

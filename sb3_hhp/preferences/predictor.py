@@ -21,20 +21,19 @@ from stable_baselines3.common.preprocessing import is_image_space, is_image_spac
 from stable_baselines3.common.utils import get_device
 from torch import nn
 
-from sb3_hhp.oracles.base import Label
-
 HEADS = ("linear", "sigmoid", "relu")
 ARCHITECTURES = ("auto", "cnn", "mlp")
 SPREADS = ("std", "var")
 # Smallest image side that "auto" sends through the convolutional branch (NatureCNN's minimum).
 MIN_CNN_SIDE = 36
 
-# One-hot targets (v_0, v_1) of eq. 1; "equal" teaches (0.5, 0.5) (DESIGN.md gap 2).
-_TARGETS = {
-    Label.FIRST: (1.0, 0.0),
-    Label.SECOND: (0.0, 1.0),
-    Label.EQUAL: (0.5, 0.5),
-}
+
+
+def _label_type() -> type:
+    # Imported on use: sb3_hhp.oracles imports this module (the synthetic oracle reuses PreferenceNetwork).
+    from sb3_hhp.oracles.base import Label
+
+    return Label
 
 
 def _check_int(name: str, value: Any, minimum: int) -> None:
@@ -400,9 +399,12 @@ class PreferencePredictor:
         :param label: a :class:`~sb3_hhp.oracles.base.Label` or anything ``Label.parse`` reads
         :return: True if stored; False for INCOMPARABLE, which is never trained on
         """
+        Label = _label_type()
         label = Label.parse(label)
         if label == Label.INCOMPARABLE:
             return False
+        # one-hot targets (v_0, v_1) of eq. 1; "equal" teaches (0.5, 0.5) (DESIGN.md gap 2)
+        target = {Label.FIRST: (1.0, 0.0), Label.SECOND: (0.0, 1.0), Label.EQUAL: (0.5, 0.5)}[label]
         shape = tuple(self.observation_space.shape)
         arrays = {"state": np.asarray(state), "goal1": np.asarray(goal1), "goal2": np.asarray(goal2)}
         for name, array in arrays.items():
@@ -412,7 +414,7 @@ class PreferencePredictor:
         self._goals1[self._pos] = arrays["goal1"]
         self._goals2[self._pos] = arrays["goal2"]
         self._labels[self._pos] = int(label)
-        self._targets[self._pos] = _TARGETS[label]
+        self._targets[self._pos] = target
         self._pos = (self._pos + 1) % self.buffer_size
         self._size = min(self._size + 1, self.buffer_size)
         return True
@@ -482,6 +484,7 @@ class PreferencePredictor:
 
     def accuracy(self) -> float:
         """Fraction of the buffer's FIRST/SECOND tuples ordered right by the network without dropout (nan if none)."""
+        Label = _label_type()
         labels = self._labels[: self._size]
         indices = np.flatnonzero((labels == Label.FIRST) | (labels == Label.SECOND))
         if len(indices) == 0:
