@@ -154,7 +154,9 @@ class PrioritizedReplayBuffer(ReplayBuffer):
             priorities[indices // self.n_envs == self.pos] = 0.0
         self.tree.update(indices, priorities)
 
-    def sample(self, batch_size: int, env: VecNormalize | None = None) -> PrioritizedReplayBufferSamples:  # type: ignore[override]
+    def sample(  # type: ignore[override]
+        self, batch_size: int, env: VecNormalize | None = None
+    ) -> PrioritizedReplayBufferSamples:
         """
         Draw ``batch_size`` transitions with probability ``P(i)`` (stratified over the total).
 

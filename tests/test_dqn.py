@@ -1,0 +1,463 @@
+"""Tests of the sum tree, the prioritized replay buffer and DoubleDQN."""
+
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from scipy import stats
+from stable_baselines3.common.buffers import NStepReplayBuffer
+from stable_baselines3.common.envs import IdentityEnv
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.monitor import Monitor
+from torch.nn import functional as F
+
+from sb3_hhp.dqn.buffers import PrioritizedReplayBuffer, PrioritizedReplayBufferSamples
+from sb3_hhp.dqn.dqn import DoubleDQN, double_q_target
+from sb3_hhp.dqn.sum_tree import SumTree
+
+th.set_num_threads(1)
+
+
+# ----------------------------------------------------------------------------- sum tree
+
+
+@pytest.mark.parametrize("capacity", [1, 5, 8, 13])
+def test_sum_tree_totals(capacity: int) -> None:
+    rng = np.random.default_rng(0)
+    tree = SumTree(capacity)
+    assert tree.total == 0.0
+    priorities = rng.random(capacity) * 10
+    priorities[0] = 0.0
+    tree.update(np.arange(capacity), priorities)
+    assert tree.total == pytest.approx(priorities.sum())
+    assert tree.max_priority == pytest.approx(priorities.max())
+    positive = priorities[priorities > 0]
+    assert tree.min_priority == (pytest.approx(positive.min()) if positive.size else np.inf)
+    np.testing.assert_allclose(tree.priorities(np.arange(capacity)), priorities)
+    assert tree[capacity - 1] == pytest.approx(priorities[-1])
+    # Partial update
+    tree.update(np.array([capacity - 1]), 0.25)
+    priorities[-1] = 0.25
+    assert tree.total == pytest.approx(priorities.sum())
+    assert tree.max_priority == pytest.approx(priorities.max())
+
+
+def test_sum_tree_repeated_indices_last_wins() -> None:
+    tree = SumTree(6)
+    tree.update(np.array([1, 3, 1, 1, 3]), np.array([5.0, 2.0, 7.0, 4.0, 9.0]))
+    expected = np.array([0.0, 4.0, 0.0, 9.0, 0.0, 0.0])
+    np.testing.assert_allclose(tree.priorities(np.arange(6)), expected)
+    assert tree.total == pytest.approx(13.0)
+    # Same result as a sequence of single updates
+    sequential = SumTree(6)
+    for index, priority in zip([1, 3, 1, 1, 3], [5.0, 2.0, 7.0, 4.0, 9.0]):
+        sequential.update(np.array([index]), np.array([priority]))
+    np.testing.assert_allclose(sequential._sum, tree._sum)
+    np.testing.assert_allclose(sequential._min, tree._min)
+    np.testing.assert_allclose(sequential._max, tree._max)
+
+
+def test_sum_tree_sampling_frequencies_follow_priorities() -> None:
+    priorities = np.array([1.0, 2.0, 3.0, 4.0, 0.0, 5.0, 6.0])
+    tree = SumTree(len(priorities))
+    tree.update(np.arange(len(priorities)), priorities)
+    rng = np.random.default_rng(42)
+    samples = np.concatenate([tree.sample(64, rng)[0] for _ in range(200_000 // 64)])
+    counts = np.bincount(samples, minlength=len(priorities))
+    assert counts[4] == 0  # priority 0: never drawn
+    expected = priorities / priorities.sum() * len(samples)
+    positive = priorities > 0
+    chi2 = ((counts[positive] - expected[positive]) ** 2 / expected[positive]).sum()
+    assert chi2 < stats.chi2.ppf(0.999, df=positive.sum() - 1)
+    np.testing.assert_allclose(counts / len(samples), priorities / priorities.sum(), atol=3e-3)
+
+
+def test_sum_tree_sampling_is_stratified_and_returns_priorities() -> None:
+    tree = SumTree(4)
+    tree.update(np.arange(4), np.ones(4))
+    indices, priorities = tree.sample(4, np.random.default_rng(0))
+    # One draw per quarter of the total: every leaf exactly once, in order
+    np.testing.assert_array_equal(indices, [0, 1, 2, 3])
+    np.testing.assert_allclose(priorities, 1.0)
+
+
+def test_sum_tree_invalid_arguments() -> None:
+    with pytest.raises(ValueError, match="capacity"):
+        SumTree(0)
+    tree = SumTree(4)
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        tree.update(np.array([0]), np.array([-1.0]))
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        tree.update(np.array([0, 1]), np.array([1.0, np.nan]))
+    with pytest.raises(ValueError, match="indices"):
+        tree.update(np.array([4]), np.array([1.0]))
+    with pytest.raises(ValueError, match="all 0"):
+        tree.sample(2, np.random.default_rng(0))
+
+
+# ----------------------------------------------------------------------- replay buffer
+
+
+def _filled_buffer(n: int, buffer_size: int = 16, n_envs: int = 1, **kwargs) -> PrioritizedReplayBuffer:
+    """A buffer whose transition number k has observation [k, env] and reward k."""
+    buffer = PrioritizedReplayBuffer(
+        buffer_size,
+        spaces.Box(-np.inf, np.inf, (2,), np.float32),
+        spaces.Discrete(3),
+        device="cpu",
+        n_envs=n_envs,
+        **kwargs,
+    )
+    for k in range(n):
+        obs = np.array([[k, e] for e in range(n_envs)], dtype=np.float32)
+        buffer.add(obs, obs + 1, np.zeros(n_envs), np.full(n_envs, k, dtype=np.float32), np.zeros(n_envs), [{}] * n_envs)
+    return buffer
+
+
+def test_per_new_transitions_get_max_priority() -> None:
+    alpha, eps = 0.6, 1e-6
+    buffer = _filled_buffer(5, alpha=alpha, epsilon=eps)
+    np.testing.assert_allclose(buffer.tree.priorities(np.arange(5)), 1.0)
+    td = np.array([0.5, -2.0, 0.0, 1.0, -3.0])
+    buffer.update_priorities(np.arange(5), td)
+    # p_i = |delta_i| + epsilon, stored as p_i^alpha
+    expected = (np.abs(td) + eps) ** alpha
+    np.testing.assert_allclose(buffer.tree.priorities(np.arange(5)), expected)
+    obs = np.zeros((1, 2), dtype=np.float32)
+    buffer.add(obs, obs, np.zeros(1), np.zeros(1), np.zeros(1), [{}])
+    assert buffer.tree[5] == pytest.approx(expected.max())
+
+
+def test_per_update_priorities_accepts_tensors() -> None:
+    buffer = _filled_buffer(3, alpha=1.0, epsilon=0.1)
+    buffer.update_priorities(np.array([0, 2]), th.tensor([[-0.5], [2.0]]))
+    np.testing.assert_allclose(buffer.tree.priorities(np.arange(3)), [0.6, 1.0, 2.1])
+    with pytest.raises(ValueError, match="one value per index"):
+        buffer.update_priorities(np.array([0, 1]), np.array([1.0]))
+
+
+def test_per_sampling_probabilities_and_importance_weights() -> None:
+    alpha, beta, eps = 0.6, 0.4, 1e-6
+    n = 6
+    buffer = _filled_buffer(n, buffer_size=10, alpha=alpha, beta=beta, epsilon=eps)
+    td = np.array([0.1, 1.0, 2.0, 0.0, 5.0, 0.5])
+    buffer.update_priorities(np.arange(n), td)
+
+    p_alpha = (np.abs(td) + eps) ** alpha
+    probabilities = p_alpha / p_alpha.sum()  # P(i) = p_i^alpha / sum_k p_k^alpha
+    raw_weights = (n * probabilities) ** (-beta)  # (N * P(i))^-beta
+    expected_weights = raw_weights / raw_weights.max()
+
+    counts = np.zeros(n)
+    for _ in range(200_000 // 250):
+        batch = buffer.sample(250)
+        assert isinstance(batch, PrioritizedReplayBufferSamples)
+        assert batch.weights.shape == (250, 1)
+        # The sampled rows are the transitions the indices name
+        np.testing.assert_array_equal(batch.observations[:, 0].numpy(), batch.indices)
+        np.testing.assert_array_equal(batch.rewards[:, 0].numpy(), batch.indices)
+        np.testing.assert_allclose(batch.weights[:, 0].numpy(), expected_weights[batch.indices], rtol=1e-5)
+        counts += np.bincount(batch.indices, minlength=n)
+    np.testing.assert_allclose(counts / counts.sum(), probabilities, atol=3e-3)
+    assert counts[3] > 0  # |delta| = 0 still has priority epsilon^alpha > 0
+
+
+def test_per_alpha_zero_is_uniform_with_unit_weights() -> None:
+    buffer = _filled_buffer(4, alpha=0.0)
+    buffer.update_priorities(np.arange(4), np.array([0.0, 1.0, 10.0, 100.0]))
+    batch = buffer.sample(64)
+    np.testing.assert_allclose(batch.weights.numpy(), 1.0)
+    np.testing.assert_array_equal(np.bincount(batch.indices, minlength=4), [16, 16, 16, 16])
+
+
+def test_per_several_envs() -> None:
+    buffer = _filled_buffer(4, buffer_size=8, n_envs=2)
+    batch = buffer.sample(200)
+    # index = pos * n_envs + env, observation = [pos, env]
+    np.testing.assert_array_equal(batch.observations[:, 0].numpy(), batch.indices // 2)
+    np.testing.assert_array_equal(batch.observations[:, 1].numpy(), batch.indices % 2)
+    np.testing.assert_array_equal(batch.next_observations.numpy(), batch.observations.numpy() + 1)
+    assert set(batch.indices.tolist()) == set(range(8))
+
+
+def test_per_optimize_memory_never_samples_invalid_transition() -> None:
+    buffer = _filled_buffer(7, buffer_size=4, optimize_memory_usage=True, handle_timeout_termination=False)
+    assert buffer.full and buffer.pos == 3
+    assert buffer.tree[3] == 0.0
+    for _ in range(20):
+        batch = buffer.sample(32)
+        assert 3 not in batch.indices
+        # next observation of transition k is the observation stored after it
+        np.testing.assert_array_equal(batch.next_observations[:, 0].numpy(), batch.observations[:, 0].numpy() + 1)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(alpha=1.5), "alpha"),
+        (dict(alpha=-0.1), "alpha"),
+        (dict(beta=1.1), "beta"),
+        (dict(epsilon=0.0), "epsilon"),
+        (dict(buffer_size=0), "buffer_size"),
+    ],
+)
+def test_per_invalid_arguments(kwargs: dict, match: str) -> None:
+    args = dict(buffer_size=8, observation_space=spaces.Box(0, 1, (2,)), action_space=spaces.Discrete(2))
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        PrioritizedReplayBuffer(**args)
+
+
+def test_per_rejects_dict_observations_and_empty_sampling() -> None:
+    with pytest.raises(ValueError, match="Dict"):
+        PrioritizedReplayBuffer(8, spaces.Dict({"a": spaces.Box(0, 1, (2,))}), spaces.Discrete(2))
+    buffer = PrioritizedReplayBuffer(8, spaces.Box(0, 1, (2,)), spaces.Discrete(2), device="cpu")
+    with pytest.raises(ValueError, match="empty"):
+        buffer.sample(4)
+
+
+# ---------------------------------------------------------------------- double Q target
+
+
+def test_double_q_target_by_hand() -> None:
+    next_q_online = th.tensor([[1.0, 5.0, 2.0], [3.0, 0.0, 1.0], [0.0, 1.0, 4.0]])
+    next_q_target = th.tensor([[4.0, 1.0, 9.0], [2.0, 7.0, 0.0], [3.0, 2.0, 6.0]])
+    rewards = th.tensor([[1.0], [0.5], [-1.0]])
+    dones = th.tensor([[0.0], [1.0], [0.0]])
+    gamma = 0.9
+    target = double_q_target(next_q_online, next_q_target, rewards, dones, gamma)
+    # row 0: online argmax = 1 -> Q_target = 1 (plain max would use 9)
+    # row 1: terminal -> reward only
+    # row 2: online argmax = 2 -> Q_target = 6 (same as plain max here)
+    expected = th.tensor([[1.0 + 0.9 * 1.0], [0.5], [-1.0 + 0.9 * 6.0]])
+    th.testing.assert_close(target, expected)
+    plain = double_q_target(next_q_target, next_q_target, rewards, dones, gamma)
+    th.testing.assert_close(plain, th.tensor([[1.0 + 0.9 * 9.0], [0.5], [-1.0 + 0.9 * 6.0]]))
+    assert not th.allclose(target, plain)
+
+
+def test_double_q_target_respects_valid_actions() -> None:
+    next_q_online = th.tensor([[1.0, 5.0, 2.0], [0.0, 1.0, 4.0]])
+    next_q_target = th.tensor([[4.0, 1.0, 9.0], [3.0, 2.0, 6.0]])
+    rewards = th.zeros(2, 1)
+    dones = th.zeros(2, 1)
+    mask = th.tensor([True, False, True])
+    # row 0: argmax over {0, 2} of online -> 2 -> 9; row 1: argmax over {0, 2} -> 2 -> 6
+    target = double_q_target(next_q_online, next_q_target, rewards, dones, 0.5, valid_actions=mask)
+    th.testing.assert_close(target, th.tensor([[4.5], [3.0]]))
+    # per-row mask: row 1 may only take action 0 or 1 -> online argmax 1 -> Q_target 2
+    row_mask = th.tensor([[True, False, True], [True, True, False]])
+    target = double_q_target(next_q_online, next_q_target, rewards, dones, 0.5, valid_actions=row_mask)
+    th.testing.assert_close(target, th.tensor([[4.5], [1.0]]))
+    # per-sample discounts (n-step returns)
+    target = double_q_target(next_q_online, next_q_target, rewards, dones, th.tensor([[1.0], [0.0]]))
+    th.testing.assert_close(target, th.tensor([[1.0], [0.0]]))
+
+
+# --------------------------------------------------------------------------- DoubleDQN
+
+
+def _model(dim: int = 4, **kwargs) -> DoubleDQN:
+    params = dict(
+        learning_starts=100,
+        learning_rate=1e-3,
+        batch_size=32,
+        train_freq=1,
+        target_update_interval=100,
+        exploration_fraction=0.3,
+        gamma=0.0,
+        policy_kwargs=dict(net_arch=[32]),
+        seed=0,
+        device="cpu",
+        buffer_size=1000,
+    )
+    params.update(kwargs)
+    return DoubleDQN("MlpPolicy", IdentityEnv(dim=dim), **params)
+
+
+def test_double_dqn_learns_identity_env() -> None:
+    model = _model(dim=4)
+    assert isinstance(model.replay_buffer, PrioritizedReplayBuffer)
+    assert model.replay_buffer.alpha == 0.6 and model.replay_buffer.beta == 0.4
+    model.learn(2000)
+    mean_reward, _ = evaluate_policy(model, Monitor(IdentityEnv(dim=4)), n_eval_episodes=3)
+    assert mean_reward >= 90  # 100 steps per episode, +1 per correct action
+
+
+def _record_batches(model: DoubleDQN) -> list:
+    batches = []
+    sample = model.replay_buffer.sample
+
+    def recording_sample(*args, **kwargs):
+        batch = sample(*args, **kwargs)
+        batches.append(batch)
+        return batch
+
+    model.replay_buffer.sample = recording_sample
+    return batches
+
+
+@pytest.mark.parametrize("double_q", [True, False])
+def test_train_step_matches_hand_computation(double_q: bool) -> None:
+    """One gradient step with lr = 0: the logged loss is the IS-weighted Huber loss of the
+    (double) Q target, and the priorities become |delta| + eps."""
+    model = _model(dim=3, learning_rate=0.0, gamma=0.9, double_q=double_q, learning_starts=0, gradient_steps=0)
+    model.set_logger(configure(None, []))
+    model.learn(30)  # fills the buffer, no training (gradient_steps=0)
+    # Make the target network differ from the online one so that double Q matters
+    with th.no_grad():
+        for param in model.q_net_target.parameters():
+            param.add_(th.randn_like(param))
+    buffer = model.replay_buffer
+    buffer.update_priorities(np.arange(30), np.linspace(0.0, 3.0, 30))
+    batches = _record_batches(model)
+    model.train(gradient_steps=1, batch_size=16)
+    batch = batches[0]
+
+    with th.no_grad():
+        q_online_next = model.q_net(batch.next_observations)
+        q_target_next = model.q_net_target(batch.next_observations)
+        if double_q:
+            next_actions = q_online_next.argmax(dim=1)
+        else:
+            next_actions = q_target_next.argmax(dim=1)
+        next_values = q_target_next[th.arange(16), next_actions].reshape(-1, 1)
+        targets = batch.rewards + 0.9 * (1 - batch.dones) * next_values
+        current = model.q_net(batch.observations)[th.arange(16), batch.actions[:, 0].long()].reshape(-1, 1)
+        delta = targets - current
+        huber = th.where(delta.abs() < 1, 0.5 * delta**2, delta.abs() - 0.5)
+        expected_loss = (batch.weights * huber).mean().item()
+    assert model.logger.name_to_value["train/loss"] == pytest.approx(expected_loss, rel=1e-5)
+    expected_priorities = (np.abs(delta.numpy()[:, 0]) + 1e-6) ** 0.6
+    # For repeated indices the last update wins: compare per unique index
+    last = {int(i): p for i, p in zip(batch.indices, expected_priorities)}
+    np.testing.assert_allclose(buffer.tree.priorities(np.array(list(last))), list(last.values()), rtol=1e-5)
+
+
+def test_rewards_hook_is_used_in_target() -> None:
+    class ZeroReward(DoubleDQN):
+        def _rewards(self, replay_data) -> th.Tensor:
+            return th.zeros_like(replay_data.rewards)
+
+    model = ZeroReward("MlpPolicy", IdentityEnv(dim=3), learning_rate=0.0, gamma=0.0, learning_starts=0,
+                       gradient_steps=0, policy_kwargs=dict(net_arch=[8]), seed=1, device="cpu")
+    model.set_logger(configure(None, []))
+    model.learn(20)
+    batches = _record_batches(model)
+    model.train(gradient_steps=1, batch_size=8)
+    batch = batches[0]
+    assert batch.rewards.abs().sum() > 0  # IdentityEnv pays 1 for a correct action
+    with th.no_grad():
+        current = model.q_net(batch.observations).gather(1, batch.actions.long())
+        expected = (batch.weights * F.smooth_l1_loss(current, th.zeros_like(current), reduction="none")).mean().item()
+    assert model.logger.name_to_value["train/loss"] == pytest.approx(expected, rel=1e-5)
+
+
+def test_valid_actions_restrict_predict_and_exploration() -> None:
+    model = _model(dim=4, learning_starts=50)
+    obs = np.array([2])
+    greedy = model.predict(obs, deterministic=True)[0].item()
+    mask = np.ones(4, dtype=bool)
+    mask[greedy] = False
+    model.valid_actions = mask
+    with th.no_grad():
+        q_values = model.q_net(th.as_tensor(obs)).numpy()[0]
+    best_valid = int(np.flatnonzero(mask)[np.argmax(q_values[mask])])
+    assert model.predict(obs, deterministic=True)[0].item() == best_valid
+    vec_actions, _ = model.predict(np.array([0, 1, 2, 3]), deterministic=True)
+    assert vec_actions.shape == (4,) and mask[vec_actions].all()
+    # epsilon-greedy: only valid actions, all of them reached
+    model.exploration_rate = 1.0
+    random_actions = np.concatenate([model.predict(np.array([0, 1, 2, 3]))[0] for _ in range(50)])
+    assert set(random_actions.tolist()) == set(np.flatnonzero(mask).tolist())
+    # warm-up actions (before learning_starts) too
+    model.learn(40)
+    stored = model.replay_buffer.actions[: model.replay_buffer.pos, 0, 0].astype(int)
+    assert mask[stored].all()
+
+
+def test_valid_actions_validation() -> None:
+    model = _model(dim=3)
+    with pytest.raises(ValueError, match="shape"):
+        model.valid_actions = np.ones(4, dtype=bool)
+    with pytest.raises(ValueError, match="boolean"):
+        model.valid_actions = np.ones(3)
+    with pytest.raises(ValueError, match="at least one"):
+        model.valid_actions = np.zeros(3, dtype=bool)
+
+
+def test_resize_action_space_keeps_q_values_and_keeps_learning() -> None:
+    model = _model(dim=3, learning_starts=20)
+    model.learn(100)
+    model.valid_actions = np.array([True, False, True])
+    obs = th.arange(3)
+    with th.no_grad():
+        old_q, old_q_target = model.q_net(obs).clone(), model.q_net_target(obs).clone()
+    buffer = model.replay_buffer
+    model.resize_action_space(5)
+    assert model.action_space.n == 5 and model.policy.action_space.n == 5
+    assert model.replay_buffer is buffer
+    np.testing.assert_array_equal(model.valid_actions, [True, False, True, True, True])
+    with th.no_grad():
+        new_q, new_q_target = model.q_net(obs), model.q_net_target(obs)
+    assert new_q.shape == (3, 5)
+    th.testing.assert_close(new_q[:, :3], old_q)
+    th.testing.assert_close(new_q_target[:, :3], old_q_target)
+    # The optimizer trains the new network
+    optimizer_params = {id(p) for group in model.policy.optimizer.param_groups for p in group["params"]}
+    assert optimizer_params == {id(p) for p in model.q_net.parameters()}
+    # Learning continues with the old replay buffer and new actions
+    buffer.add(np.array([0]), np.array([1]), np.array([4]), np.array([1.0]), np.array([0.0]), [{}])
+    before = [p.detach().clone() for p in model.q_net.parameters()]
+    model.train(gradient_steps=3, batch_size=16)
+    assert any(not th.equal(b, p) for b, p in zip(before, model.q_net.parameters()))
+    model.exploration_rate = 1.0
+    assert set(np.concatenate([model.predict(np.array([0, 1, 2]))[0] for _ in range(30)]).tolist()) == {0, 2, 3, 4}
+    with pytest.raises(ValueError, match="n_actions"):
+        model.resize_action_space(4)
+
+
+def test_save_load(tmp_path) -> None:
+    model = _model(dim=3, learning_starts=20, double_q=False, prioritized_replay_alpha=0.5)
+    model.learn(60)
+    model.resize_action_space(4)
+    model.valid_actions = np.array([True, True, False, True])
+    obs = np.array([0, 1, 2])
+    actions, _ = model.predict(obs, deterministic=True)
+    model.save(tmp_path / "ddqn.zip")
+    loaded = DoubleDQN.load(tmp_path / "ddqn.zip", device="cpu")
+    assert loaded.double_q is False and loaded.prioritized_replay_alpha == 0.5
+    assert loaded.action_space.n == 4
+    np.testing.assert_array_equal(loaded.valid_actions, model.valid_actions)
+    assert isinstance(loaded.replay_buffer, PrioritizedReplayBuffer) and loaded.replay_buffer.alpha == 0.5
+    with th.no_grad():
+        th.testing.assert_close(loaded.q_net(th.as_tensor(obs)), model.q_net(th.as_tensor(obs)))
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], actions)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(prioritized_replay_alpha=1.5), "prioritized_replay_alpha"),
+        (dict(prioritized_replay_beta=-0.1), "prioritized_replay_beta"),
+        (dict(prioritized_replay_eps=0.0), "prioritized_replay_eps"),
+        (dict(double_q="yes"), "double_q"),
+        (dict(prioritized_replay=1), "prioritized_replay"),
+        (dict(n_steps=3), "n_steps"),
+    ],
+)
+def test_double_dqn_invalid_arguments(kwargs: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        _model(dim=2, **kwargs)
+
+
+def test_without_prioritized_replay_uses_sb3_buffer() -> None:
+    model = _model(dim=2, prioritized_replay=False, n_steps=2)
+    assert type(model.replay_buffer) is NStepReplayBuffer
+    model.learn(150)
+    assert model._n_updates == 50
+    model.set_logger(configure(None, []))
+    model.train(gradient_steps=2, batch_size=8)
+    assert np.isfinite(model.logger.name_to_value["train/loss"])
+    assert "train/is_weight" not in model.logger.name_to_value
