@@ -23,7 +23,7 @@ Two modes:
   to end in time) spends what is left of the quota on that episode's ``k`` least confident tuples,
   so the whole budget is used by the end of training. The window quantile lags behind confidences
   that drift (a predictor grows surer as it learns): keep ``quantile_window`` to a small part of
-  the tuples a run sees (the default 2,000 is about a tenth of a 500k-step MiniGrid run).
+  all the tuples a run sees.
 """
 
 import math
