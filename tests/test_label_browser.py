@@ -113,3 +113,31 @@ def test_the_countdown_answers_cant_tell(browser):
             page.close()
     [(_, _, answer)] = store.answers_since(0)
     assert (answer.query_id, answer.label, answer.annotator) == ("q0", Label.INCOMPARABLE, "bob")
+
+
+def test_the_gallery_page_shows_every_subgoal(browser):
+    store = PreferenceStore()
+    image = np.random.default_rng(0).integers(0, 255, (8, 8, 3), dtype=np.uint8)
+    store.put_subgoals(
+        [
+            {"id": 0, "image": image, "found_at": 0, "success_rate": None, "chosen_recently": 0, "mean_score": None},
+            {"id": 7, "image": image, "found_at": 900, "success_rate": 0.75, "chosen_recently": 4, "mean_score": 0.25},
+        ]
+    )
+    with LabelServer(store, token="tok") as server:
+        page = browser.new_page()
+        errors = []
+        page.on("pageerror", lambda error: errors.append(error))
+        try:
+            page.goto(server.url.replace("/?", "/gallery?"))
+            page.wait_for_function(
+                "[...document.querySelectorAll('#gallery img')].filter(i => i.complete && i.naturalWidth === 8).length === 2",
+                timeout=10_000,
+            )
+            caption = page.text_content('figure[data-subgoal-id="7"] figcaption')
+            assert "#7" in caption and "900" in caption and "75 %" in caption and "chosen 4" in caption
+            assert "0.250" in caption
+            assert page.text_content("#count") == "2"
+            assert errors == []
+        finally:
+            page.close()
