@@ -1,1 +1,39 @@
 """Goal spaces: state -> sub-goal, done(s, g), similarity and images, one per domain."""
+
+from typing import Union
+
+import gymnasium as gym
+
+from sb3_hhp.goals.base import SUCCESS_KEY, GoalSpace
+from sb3_hhp.goals.minigrid import MiniGridEgocentricObs, MiniGridGoalSpace, find_minigrid
+
+GOAL_SPACES: dict[str, type[GoalSpace]] = {"minigrid": MiniGridGoalSpace}
+
+
+def wrap_env(env: gym.Env) -> gym.Env:
+    """Give a raw env the observation its goal space reads (MiniGrid: :class:`MiniGridEgocentricObs`)."""
+    if find_minigrid(env) is not None and not MiniGridGoalSpace.supports(env):
+        return MiniGridEgocentricObs(env)
+    return env
+
+
+def make_goal_space(goal_space: Union[str, GoalSpace], env: gym.Env) -> GoalSpace:
+    """The goal space called ``goal_space`` ("auto": the first that supports ``env``), checked against ``env``."""
+    if isinstance(goal_space, GoalSpace):
+        candidates = [goal_space]
+    elif goal_space == "auto":
+        candidates = [cls() for cls in GOAL_SPACES.values() if cls.supports(env)]
+    elif goal_space in GOAL_SPACES:
+        candidates = [GOAL_SPACES[goal_space]()]
+    else:
+        raise ValueError(f"Unknown goal space {goal_space!r}: use 'auto', one of {sorted(GOAL_SPACES)} or a GoalSpace")
+    if not candidates or not candidates[0].supports(env):
+        raise ValueError(
+            f"No goal space supports this env (observation space {env.observation_space}). "
+            "HhP supports MiniGrid tasks wrapped with sb3_hhp.goals.MiniGridEgocentricObs "
+            "(sb3_hhp.goals.wrap_env(env) does it); pass goal_space= a GoalSpace for other envs."
+        )
+    return candidates[0]
+
+
+__all__ = ["GOAL_SPACES", "SUCCESS_KEY", "GoalSpace", "MiniGridEgocentricObs", "MiniGridGoalSpace", "make_goal_space", "wrap_env"]

@@ -1,0 +1,106 @@
+"""Curiosity-driven sub-goal discovery (CSD, section 4.2.1, Algorithm 1 line 29).
+
+After each episode the visited states are scored by their novelty progress rho(s) (eq. 8, from the
+RND memory Omega). States in the lowest ``percentile`` percent of rho (where novelty fell the most:
+the agent has been learning about them) that were visited at least ``min_visits`` times over all
+training and whose similarity to every stored sub-goal is below ``similarity_threshold``
+(b_similarity) become new sub-goals. ``strategy="random"`` is the paper's ablation (Table 1): a
+random visited state passes the same visit and similarity gates.
+"""
+
+from collections import Counter
+from collections.abc import Hashable, Sequence
+from typing import Optional
+
+import numpy as np
+
+from sb3_hhp.goals.base import GoalSpace
+
+
+class SubgoalDiscovery:
+    """Chooses which visited states become new sub-goals.
+
+    :param goal_space: the domain's goal space (keys and similarity)
+    :param strategy: "csd" (novelty progress) or "random" (the ablation)
+    :param percentile: the lowest percentile of rho that qualifies (5 in the paper), in (0, 100]
+    :param min_visits: how often a state's sub-goal key must have been visited over training
+    :param similarity_threshold: b_similarity in [0, 1]: a candidate must be less similar than this to every sub-goal
+    :param max_new: at most this many sub-goals per episode
+    :param seed: seed of the random strategy and tie-breaking
+    """
+
+    def __init__(
+        self,
+        goal_space: GoalSpace,
+        strategy: str = "csd",
+        percentile: float = 5.0,
+        min_visits: int = 2,
+        similarity_threshold: float = 0.5,
+        max_new: int = 1,
+        seed: Optional[int] = None,
+    ) -> None:
+        if strategy not in ("csd", "random"):
+            raise ValueError(f"discovery strategy must be 'csd' or 'random', got {strategy!r}")
+        if not 0 < percentile <= 100:
+            raise ValueError(f"percentile must be in (0, 100], got {percentile}")
+        if min_visits < 1:
+            raise ValueError(f"min_visits must be >= 1, got {min_visits}")
+        if not 0 <= similarity_threshold <= 1:
+            raise ValueError(f"similarity_threshold (b_similarity) must be in [0, 1], got {similarity_threshold}")
+        if max_new < 1:
+            raise ValueError(f"max_new must be >= 1, got {max_new}")
+        self.goal_space = goal_space
+        self.strategy = strategy
+        self.percentile = percentile
+        self.min_visits = min_visits
+        self.similarity_threshold = similarity_threshold
+        self.max_new = max_new
+        self.rng = np.random.default_rng(seed)
+
+    def select(
+        self,
+        states: np.ndarray,
+        keys: Sequence[Hashable],
+        rho: Optional[np.ndarray],
+        visits: Counter,
+        goal_keys: Sequence[Hashable],
+        goal_obs: np.ndarray,
+    ) -> list[int]:
+        """Indices of ``states`` to add as sub-goals (at most ``max_new``, lowest rho first).
+
+        :param states: the episode's visited states (N, *obs_shape)
+        :param keys: their sub-goal keys
+        :param rho: their novelty progress (eq. 8), required for "csd"
+        :param visits: visit counts of every key over training
+        :param goal_keys: keys of the current sub-goals
+        :param goal_obs: observations of the current sub-goals
+        """
+        n = len(keys)
+        if n == 0:
+            return []
+        if self.strategy == "csd":
+            if rho is None or len(rho) != n:
+                raise ValueError("CSD needs one novelty-progress value per visited state")
+            # lowest `percentile` percent of rho; random tie-breaking so equal scores are not taken in visit order
+            order = np.lexsort((self.rng.random(n), rho))
+            n_candidates = max(1, int(np.ceil(n * self.percentile / 100.0)))
+            candidates = order[:n_candidates]
+        else:
+            candidates = self.rng.permutation(n)
+        chosen: list[int] = []
+        chosen_keys = list(goal_keys)
+        chosen_obs = list(goal_obs)
+        for index in candidates:
+            key = keys[index]
+            if visits[key] < self.min_visits:
+                continue
+            if chosen_keys:
+                similarity = self.goal_space.similarity(key, states[index], chosen_keys, np.stack(chosen_obs))
+                if np.max(similarity) >= self.similarity_threshold:
+                    continue
+            chosen.append(int(index))
+            chosen_keys.append(key)
+            chosen_obs.append(states[index])
+            if len(chosen) >= self.max_new:
+                break
+        return chosen

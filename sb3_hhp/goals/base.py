@@ -1,0 +1,67 @@
+"""The goal-space abstraction: what a sub-goal is in a domain.
+
+A goal space maps an observation to a hashable *sub-goal key* (``key``), decides ``done(s, g)``
+(:meth:`GoalSpace.achieved`), measures how similar a candidate is to the stored sub-goals
+(:meth:`GoalSpace.similarity`, used by the discovery gate ``b_similarity``) and renders the
+image that a person is shown. Networks see the observation recorded where a sub-goal was found.
+"""
+
+from abc import ABC, abstractmethod
+from collections.abc import Hashable, Sequence
+from typing import Any, Optional
+
+import gymnasium as gym
+import numpy as np
+
+#: the key of the "task solved" situation: the episode ended with a positive extrinsic reward
+SUCCESS_KEY: tuple = ("success",)
+
+
+class GoalSpace(ABC):
+    """One domain's notion of a sub-goal."""
+
+    #: short name used in configs (``goal_space="minigrid"``)
+    name: str = "base"
+
+    @classmethod
+    @abstractmethod
+    def supports(cls, env: gym.Env) -> bool:
+        """Whether this goal space can be used with ``env`` (its observation space and base env)."""
+
+    @abstractmethod
+    def key(self, obs: np.ndarray) -> Hashable:
+        """The sub-goal key of an observation (the situation it shows)."""
+
+    def terminal_key(self, obs: np.ndarray, reward: float, terminated: bool) -> Hashable:
+        """The key reached by a transition: :data:`SUCCESS_KEY` when the task was solved, else ``key(obs)``."""
+        if terminated and reward > 0:
+            return SUCCESS_KEY
+        return self.key(obs)
+
+    def achieved(self, key: Hashable, goal_key: Hashable) -> bool:
+        """``done(s, g)``: the state's key equals the sub-goal's key."""
+        return key == goal_key
+
+    def similarity(self, key: Hashable, obs: np.ndarray, goal_keys: Sequence[Hashable], goal_obs: np.ndarray) -> np.ndarray:
+        """Similarity in [0, 1] of a candidate to every stored sub-goal (default: equal keys -> 1, else 0)."""
+        return np.array([1.0 if key == other else 0.0 for other in goal_keys], dtype=np.float64)
+
+    def privileged(self, env: gym.Env) -> dict[str, Any]:
+        """Privileged facts about the current state for scripted oracles (never shown to people)."""
+        return {}
+
+    def render(self, env: gym.Env) -> Optional[np.ndarray]:
+        """An RGB image of the current state for people (None when the env cannot render)."""
+        try:
+            frame = env.unwrapped.render() if getattr(env.unwrapped, "render_mode", None) == "rgb_array" else None
+        except Exception:  # rendering is a convenience: never let it stop training
+            frame = None
+        return None if frame is None else np.asarray(frame, dtype=np.uint8)
+
+    def image_of(self, obs: np.ndarray) -> Optional[np.ndarray]:
+        """An RGB image of an observation for people (None when the observation cannot be drawn)."""
+        return None
+
+    def describe(self, key: Hashable) -> str:
+        """A short human-readable name of a sub-goal key."""
+        return str(key)

@@ -1,0 +1,160 @@
+"""MiniGrid goal space: a sub-goal is a situation that recurs across procedurally generated layouts.
+
+MiniGrid tasks draw a new layout every episode, so an exact match of the full grid never recurs and
+a sub-goal taken from one episode would be unreachable in the next (DESIGN.md gap 6). A sub-goal key
+is therefore the situation a person would name: *what the agent carries* and *what is in front of
+it, with its state* ("facing the key", "carrying the key, facing the locked door", "the door in
+front is open", "facing the goal"), plus :data:`~sb3_hhp.goals.base.SUCCESS_KEY` for a solved task.
+Keys are compared exactly; networks see the observation where the sub-goal was found and people see
+the rendered frame of that state.
+
+The observation is :class:`MiniGridEgocentricObs`: the whole grid, rotated so that the agent sits
+in the centre facing up, with the carried object drawn in the agent's cell (MiniGrid's own
+convention). Every fact of a key can be read off the observation, so ``predict`` can tell when a
+sub-goal is reached without access to the environment.
+"""
+
+from collections.abc import Hashable
+from typing import Any, Optional
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from minigrid.core.constants import IDX_TO_OBJECT, OBJECT_TO_IDX, STATE_TO_IDX
+from minigrid.core.grid import Grid
+from minigrid.minigrid_env import MiniGridEnv
+
+from sb3_hhp.goals.base import SUCCESS_KEY, GoalSpace
+
+EMPTY = OBJECT_TO_IDX["empty"]
+IDX_TO_STATE = {idx: name for name, idx in STATE_TO_IDX.items()}
+#: objects the agent interacts with: facing one of them is a milestone of a plan
+INTERACTIVE = {OBJECT_TO_IDX[name] for name in ("key", "ball", "box", "door", "goal")}
+MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
+
+
+def find_minigrid(env: gym.Env) -> Optional[MiniGridEnv]:
+    """The MiniGrid env underneath ``env`` (None when it is not a MiniGrid task)."""
+    base = getattr(env, "unwrapped", env)
+    return base if isinstance(base, MiniGridEnv) else None
+
+
+def egocentric_grid(base: MiniGridEnv) -> np.ndarray:
+    """The full grid encoding (W, H, 3) rotated so the agent is at the centre facing up, in a
+    (2 * max(W, H) - 1)-square canvas indexed ``[x, y]``; cells outside the grid are 0 ("unseen")."""
+    full = base.grid.encode()  # (W, H, 3), [x, y]
+    ax, ay = (int(v) for v in base.agent_pos)
+    if base.carrying is not None:
+        full[ax, ay] = base.carrying.encode()
+    else:
+        full[ax, ay] = (EMPTY, 0, 0)
+    size = 2 * max(base.width, base.height) - 1
+    center = size // 2
+    canvas = np.zeros((size, size, 3), dtype=np.uint8)
+    canvas[center - ax : center - ax + base.width, center - ay : center - ay + base.height] = full
+    # agent_dir 0/1/2/3 = right/down/left/up; rotate so that "forward" is -y in the canvas
+    return np.ascontiguousarray(np.rot90(canvas, (3 - int(base.agent_dir)) % 4, axes=(0, 1)))
+
+
+class MiniGridEgocentricObs(gym.ObservationWrapper):
+    """Observation: the whole grid, egocentric (agent at the centre facing up), as a uint8 array
+    (2 * max(W, H) - 1, 2 * max(W, H) - 1, 3) of MiniGrid encodings (object, colour, state).
+
+    Its upper bound is the largest encoding value (not 255), so SB3 treats it as a vector and
+    ``MlpPolicy`` sees the integer codes directly.
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        base = find_minigrid(env)
+        if base is None:
+            raise ValueError(f"MiniGridEgocentricObs needs a MiniGrid env, got {env}")
+        size = 2 * max(base.width, base.height) - 1
+        self.observation_space = spaces.Box(0, MAX_ENCODING, (size, size, 3), np.uint8)
+
+    def observation(self, observation: Any) -> np.ndarray:
+        return egocentric_grid(self.env.unwrapped)
+
+
+class MiniGridGoalSpace(GoalSpace):
+    """Sub-goal key = (carried object, object in front, its state), read off a
+    :class:`MiniGridEgocentricObs` observation; colours are ignored unless ``use_color``.
+
+    :param use_color: distinguish objects by colour (needed when colours matter, e.g. several keys)
+    :param tile_size: pixels per cell of the rendered images shown to people
+    """
+
+    name = "minigrid"
+
+    def __init__(self, use_color: bool = False, tile_size: int = 16) -> None:
+        if tile_size < 1:
+            raise ValueError(f"tile_size must be >= 1, got {tile_size}")
+        self.use_color = use_color
+        self.tile_size = tile_size
+
+    @classmethod
+    def supports(cls, env: gym.Env) -> bool:
+        space = env.observation_space
+        return (
+            find_minigrid(env) is not None
+            and isinstance(space, spaces.Box)
+            and len(space.shape) == 3
+            and space.shape[0] == space.shape[1]
+            and space.shape[0] % 2 == 1
+            and space.shape[2] == 3
+        )
+
+    def key(self, obs: np.ndarray) -> Hashable:
+        obs = np.asarray(obs)
+        center = obs.shape[0] // 2
+        carried = obs[center, center]
+        front = obs[center, center - 1]
+        if self.use_color:
+            return (int(carried[0]), int(carried[1]), int(front[0]), int(front[1]), int(front[2]))
+        return (int(carried[0]), int(front[0]), int(front[2]))
+
+    def is_milestone(self, key: Hashable, carried_before: Optional[int] = None) -> bool:
+        """A key worth pursuing: facing an object one interacts with, the task solved, or a change of what is carried."""
+        if key == SUCCESS_KEY:
+            return True
+        carried, front = key[0], key[2] if self.use_color else key[1]
+        return front in INTERACTIVE or (carried_before is not None and carried != carried_before)
+
+    def privileged(self, env: gym.Env) -> dict[str, Any]:
+        base = find_minigrid(env)
+        if base is None:
+            return {}
+        target = getattr(base, "obj", None)  # KeyCorridor / ObstructedMaze: the object to pick up
+        return {
+            "grid": base.grid.encode().tolist(),
+            "agent_pos": [int(v) for v in base.agent_pos],
+            "agent_dir": int(base.agent_dir),
+            "carrying": list(base.carrying.encode()) if base.carrying is not None else None,
+            "target": list(target.encode()[:2]) if target is not None else None,
+        }
+
+    def render(self, env: gym.Env) -> Optional[np.ndarray]:
+        base = find_minigrid(env)
+        if base is None:
+            return None
+        return np.asarray(base.get_frame(highlight=False, tile_size=self.tile_size), dtype=np.uint8)
+
+    def image_of(self, obs: np.ndarray) -> Optional[np.ndarray]:
+        """Draw an egocentric observation (agent in the centre, facing up) with MiniGrid's renderer."""
+        obs = np.asarray(obs)
+        center = obs.shape[0] // 2
+        grid, _ = Grid.decode(obs)
+        return np.asarray(grid.render(self.tile_size, agent_pos=(center, center), agent_dir=3), dtype=np.uint8)
+
+    def describe(self, key: Hashable) -> str:
+        if key == SUCCESS_KEY:
+            return "task solved"
+        if self.use_color:
+            carried, _, front, _, state = key
+        else:
+            carried, front, state = key
+        front_name = IDX_TO_OBJECT.get(front, str(front))
+        if front_name == "door":
+            front_name = f"{IDX_TO_STATE.get(state, state)} door"
+        carried_name = "nothing" if carried == EMPTY else IDX_TO_OBJECT.get(carried, str(carried))
+        return f"carrying {carried_name}, facing {front_name}"

@@ -1,0 +1,643 @@
+"""HhP: hierarchical learning from human preferences and curiosity (Algorithm 1).
+
+The meta-controller is a Double DQN with prioritized replay (this class) acting on a
+:class:`~sb3_hhp.hierarchy.env.HierarchicalEnv`: each of its actions is a sub-goal, run by that
+sub-goal's subpolicy until ``terminal(s, g)``. ``total_timesteps`` counts primitive env steps.
+Between episodes, SB3 callbacks (:mod:`sb3_hhp.callbacks`) ask the oracle about the least
+confident choices (lines 24-27), discover sub-goals (line 29) and update the curiosity model (line
+35); then ``train`` runs N_opt meta-controller updates (lines 30-34) whose reward is eq. 3.
+"""
+
+import io
+import zipfile
+from collections import Counter, deque
+from typing import Any, ClassVar, Optional, TypeVar, Union
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback, ProgressBarCallback
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
+from stable_baselines3.common.utils import get_device, should_collect_more_steps
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+
+from sb3_hhp.curiosity.rnd import RND
+from sb3_hhp.discovery.csd import SubgoalDiscovery
+from sb3_hhp.dqn.dqn import DoubleDQN
+from sb3_hhp.goals import GoalSpace, make_goal_space, wrap_env
+from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, MlpPolicy, MultiInputPolicy
+from sb3_hhp.hierarchy.env import HierarchicalEnv
+from sb3_hhp.hierarchy.subpolicies import SubpolicySet
+from sb3_hhp.oracles.base import Oracle
+from sb3_hhp.oracles.registry import make_oracle
+from sb3_hhp.preferences.predictor import PreferencePredictor
+from sb3_hhp.preferences.query import QuerySelector
+from sb3_hhp.preferences.rewards import PreferenceReturnNormalizer, meta_reward
+from sb3_hhp.preferences.store import PreferenceStore
+
+SelfHhP = TypeVar("SelfHhP", bound="HhP")
+
+#: the zip member of a saved model that holds the components beyond the meta-controller
+COMPONENTS_FILE = "hhp_components.pth"
+
+
+def _single_env(env: Union[GymEnv, str, None]) -> Optional[gym.Env]:
+    """The one gym env under ``env`` (HhP runs one env: its episodes are semi-MDP episodes)."""
+    if env is None:
+        return None
+    if isinstance(env, str):
+        try:
+            env = gym.make(env)
+        except gym.error.Error as error:
+            raise ValueError(f"Unknown env id {env!r}: {error}") from error
+    if isinstance(env, VecEnv):
+        if not isinstance(env, DummyVecEnv) or env.num_envs != 1:
+            raise ValueError(
+                f"HhP needs a single env (or a DummyVecEnv of one env, without VecEnv wrappers), got {type(env).__name__}"
+                f" with {env.num_envs} envs"
+            )
+        env = env.envs[0]
+    return env
+
+
+class HhP(DoubleDQN):
+    """Hierarchical learning from human preferences and curiosity.
+
+    :param policy: the meta-controller's policy ("MlpPolicy", "CnnPolicy", "MultiInputPolicy" or a class)
+    :param env: the task (a gym env, an env id, or a DummyVecEnv of one env); MiniGrid envs are wrapped
+        with :class:`~sb3_hhp.goals.MiniGridEgocentricObs` when needed
+    :param oracle: who answers preference queries: an :class:`~sb3_hhp.oracles.Oracle` or a name of
+        :data:`~sb3_hhp.oracles.ORACLE_NAMES`
+    :param query_budget: total number of questions over training (>= 0)
+    :param t_qry: confidence threshold above which a tuple is asked (fixed mode)
+    :param query_mode: "fixed" (t_qry) or "adaptive" (paces the budget over training, DESIGN.md gap 3)
+    :param beta: weight of the extrinsic return in eq. 3, in [0, 1]
+    :param alpha: weight of the intrinsic reward in eq. 6 (>= 0)
+    :param use_preferences: False gives the paper's "Cur" ablation (no queries, reward = R_e)
+    :param use_curiosity: False gives the "Pref" ablation (no RND, alpha = 0)
+    :param discovery: "csd", "random" (ablation) or "none" (only the sub-goals handed in)
+    :param subgoals: sub-goals handed in by the user: observations of the env (seed or replace discovery)
+    :param goal_space: "auto", a registered name or a :class:`~sb3_hhp.goals.GoalSpace`
+    :param max_subgoal_steps: primitive steps after which a sub-goal gives up (DESIGN.md gap 5)
+    :param subgoal_capacity: initial size of the meta-controller's head (it doubles when full)
+    :param b_similarity: CSD similarity gate in [0, 1]
+    :param csd_percentile: CSD's lowest percentile of novelty progress
+    :param csd_min_visits: visits a state's sub-goal key needs before it may become a sub-goal
+    :param n_masks: MC-dropout masks for the confidence (eq. 4)
+    :param dropout: dropout probability p of the predictor
+    :param predictor_head: "linear" or "sigmoid" (DESIGN.md gap 1)
+    :param confidence_spread: "std" or "var" of the MC-dropout predictions (DESIGN.md gap 1)
+    :param predictor_kwargs: more arguments of :class:`~sb3_hhp.preferences.predictor.PreferencePredictor`
+    :param rnd_kwargs: arguments of :class:`~sb3_hhp.curiosity.rnd.RND` (memory_size M, refresh_interval T, ...)
+    :param subpolicy_kwargs: arguments of each subpolicy model (DoubleDQN or DDPG)
+    :param subpolicy_exploration_steps: own steps over which a subpolicy's epsilon decays
+    :param preference_db: path of the SQLite preference store (None: in memory)
+    :param oracle_kwargs: arguments of the oracle built from a name
+    :param n_opt: meta-controller gradient steps after each episode (N_opt = 4)
+    :param record_images: render states for people (default: only when the oracle is a person)
+    Other parameters are those of :class:`~sb3_hhp.dqn.DoubleDQN` (the meta-controller); the meta
+    replay buffer R_H holds ``buffer_size`` sub-goal choices, and ``target_update_interval`` counts them.
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
+
+    def __init__(
+        self,
+        policy: Union[str, type[DQNPolicy]],
+        env: Union[GymEnv, str, None],
+        oracle: Union[str, Oracle, None] = "scripted",
+        query_budget: int = 200,
+        t_qry: float = 0.26,
+        query_mode: str = "fixed",
+        beta: float = 0.7,
+        alpha: float = 0.5,
+        use_preferences: bool = True,
+        use_curiosity: bool = True,
+        discovery: str = "csd",
+        subgoals: Optional[list[np.ndarray]] = None,
+        goal_space: Union[str, GoalSpace] = "auto",
+        max_subgoal_steps: int = 100,
+        subgoal_capacity: int = 16,
+        b_similarity: float = 0.5,
+        csd_percentile: float = 5.0,
+        csd_min_visits: int = 2,
+        n_masks: int = 500,
+        dropout: float = 0.1,
+        predictor_head: str = "linear",
+        confidence_spread: str = "std",
+        predictor_kwargs: Optional[dict[str, Any]] = None,
+        rnd_kwargs: Optional[dict[str, Any]] = None,
+        subpolicy_kwargs: Optional[dict[str, Any]] = None,
+        subpolicy_exploration_steps: int = 20_000,
+        preference_db: Optional[str] = None,
+        oracle_kwargs: Optional[dict[str, Any]] = None,
+        n_opt: int = 4,
+        record_images: Optional[bool] = None,
+        learning_rate: Union[float, Schedule] = 1e-3,
+        buffer_size: int = 500_000,
+        learning_starts: int = 1_000,
+        batch_size: int = 128,
+        tau: float = 1.0,
+        gamma: float = 0.99,
+        target_update_interval: int = 500,
+        exploration_fraction: float = 0.5,
+        exploration_initial_eps: float = 1.0,
+        exploration_final_eps: float = 0.05,
+        max_grad_norm: float = 10,
+        stats_window_size: int = 100,
+        tensorboard_log: Optional[str] = None,
+        policy_kwargs: Optional[dict[str, Any]] = None,
+        verbose: int = 0,
+        seed: Optional[int] = None,
+        device: Union[th.device, str] = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        if not 0.0 <= beta <= 1.0:
+            raise ValueError(f"beta must be in [0, 1], got {beta}")
+        if alpha < 0:
+            raise ValueError(f"alpha must be >= 0, got {alpha}")
+        if isinstance(query_budget, bool) or not isinstance(query_budget, (int, np.integer)) or query_budget < 0:
+            raise ValueError(f"query_budget must be an integer >= 0, got {query_budget!r}")
+        if t_qry < 0:
+            raise ValueError(f"t_qry must be >= 0, got {t_qry}")
+        if discovery not in ("csd", "random", "none"):
+            raise ValueError(f"discovery must be 'csd', 'random' or 'none', got {discovery!r}")
+        if discovery == "none" and not subgoals:
+            raise ValueError("discovery='none' needs sub-goals handed in with subgoals=[obs, ...]")
+        if n_opt < 1:
+            raise ValueError(f"n_opt must be >= 1, got {n_opt}")
+        if not 0.0 <= dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {dropout}")
+        self.oracle_spec = oracle
+        self.query_budget = int(query_budget)
+        self.t_qry = t_qry
+        self.query_mode = query_mode
+        self.beta = beta
+        self.alpha = alpha
+        self.use_preferences = use_preferences
+        self.use_curiosity = use_curiosity
+        self.discovery_strategy = discovery
+        self.initial_subgoals = [np.asarray(goal) for goal in subgoals] if subgoals else []
+        self.goal_space_spec = goal_space
+        self.max_subgoal_steps = max_subgoal_steps
+        self.subgoal_capacity = subgoal_capacity
+        self.b_similarity = b_similarity
+        self.csd_percentile = csd_percentile
+        self.csd_min_visits = csd_min_visits
+        self.n_masks = n_masks
+        self.dropout = dropout
+        self.predictor_head = predictor_head
+        self.confidence_spread = confidence_spread
+        self.predictor_kwargs = dict(predictor_kwargs or {})
+        self.rnd_kwargs = dict(rnd_kwargs or {})
+        self.subpolicy_kwargs = dict(subpolicy_kwargs or {})
+        self.subpolicy_exploration_steps = subpolicy_exploration_steps
+        self.preference_db = preference_db
+        self.oracle_kwargs = dict(oracle_kwargs or {})
+        self.n_opt = n_opt
+        self.record_images = record_images
+        self.subpolicy_policy = policy if isinstance(policy, str) else "MlpPolicy"
+
+        base_env = _single_env(env)
+        self.hierarchy: Optional[HierarchicalEnv] = None
+        if base_env is not None:
+            base_env = wrap_env(base_env)
+            self.goal_space = make_goal_space(goal_space, base_env)
+            self.primitive_observation_space = base_env.observation_space
+            self.primitive_action_space = base_env.action_space
+            self.hierarchy = HierarchicalEnv(
+                base_env, self.goal_space, subpolicies=None, rnd=None,  # type: ignore[arg-type]
+                alpha=alpha if use_curiosity else 0.0, max_subgoal_steps=max_subgoal_steps, capacity=subgoal_capacity,
+            )
+        super().__init__(
+            policy,
+            self.hierarchy,  # type: ignore[arg-type]
+            learning_rate=learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=(1, "episode"),
+            gradient_steps=n_opt,
+            target_update_interval=target_update_interval,
+            exploration_fraction=exploration_fraction,
+            exploration_initial_eps=exploration_initial_eps,
+            exploration_final_eps=exploration_final_eps,
+            max_grad_norm=max_grad_norm,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+            _init_setup_model=False,
+        )
+        if _init_setup_model:
+            self._setup_model()
+
+    # ------------------------------------------------------------------ construction
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        device = get_device(self.device)
+        obs_space = self.primitive_observation_space
+        self.rnd = RND(obs_space, device=device, seed=self.seed, **self.rnd_kwargs) if self.use_curiosity else None
+        predictor_kwargs = dict(
+            hidden_dim=256, dropout=self.dropout, n_masks=self.n_masks, head=self.predictor_head,
+            spread=self.confidence_spread, buffer_size=max(1, self.query_budget), device=device, seed=self.seed,
+        )
+        predictor_kwargs.update(self.predictor_kwargs)
+        self.predictor = PreferencePredictor(obs_space, **predictor_kwargs)
+        self.query_selector = QuerySelector(self.query_budget, threshold=self.t_qry, mode=self.query_mode)
+        self.return_normalizer = PreferenceReturnNormalizer(gamma=0.99, rollout_length=64)
+        self.subpolicies = SubpolicySet(
+            obs_space, self.primitive_action_space, policy=self.subpolicy_policy, subpolicy_kwargs=self.subpolicy_kwargs,
+            exploration_steps=self.subpolicy_exploration_steps, device=device, seed=self.seed,
+        )
+        self.discovery = SubgoalDiscovery(
+            self.goal_space, strategy="random" if self.discovery_strategy == "random" else "csd",
+            percentile=self.csd_percentile, min_visits=self.csd_min_visits,
+            similarity_threshold=self.b_similarity, seed=self.seed,
+        )
+        self.store = PreferenceStore(self.preference_db or ":memory:")
+        self.oracle = self._make_oracle()
+        if self.record_images is None:
+            self.record_images = self.oracle_spec in ("web", "terminal") or self.preference_db is not None
+        if not hasattr(self, "consumed_query_ids"):
+            self.consumed_query_ids: set[str] = set()
+        self.pending_queries: dict[str, Any] = {}
+        self.recent_choices: deque = deque(maxlen=1_000)
+        self.last_predictor_stats: dict[str, float] = {}
+        self.last_confidences: np.ndarray = np.zeros(0)
+        if self.hierarchy is not None:
+            self._attach(self.hierarchy)
+
+    def _attach(self, hierarchy: HierarchicalEnv) -> None:
+        hierarchy.subpolicies = self.subpolicies
+        hierarchy.rnd = self.rnd
+        hierarchy.record_images = bool(self.record_images)
+        if hierarchy.n_subgoals == 0 and not hierarchy.subgoals:
+            for goal_obs in self.initial_subgoals:
+                self.add_subgoal(self.goal_space.key(goal_obs), goal_obs, None, source="user")
+        self._sync_action_space()
+
+    def _make_oracle(self) -> Optional[Oracle]:
+        if not self.use_preferences:
+            return None
+        if isinstance(self.oracle_spec, Oracle):
+            return self.oracle_spec
+        if self.oracle_spec is None:
+            return None
+        return make_oracle(
+            self.oracle_spec, self.goal_space, self.primitive_observation_space, store=self.store, seed=self.seed,
+            **self.oracle_kwargs,
+        )
+
+    # ------------------------------------------------------------------ the sub-goal set
+    @property
+    def subgoals(self) -> list:
+        return self.hierarchy.subgoals if self.hierarchy is not None else self._loaded_subgoals
+
+    def add_subgoal(self, key: Any, obs: np.ndarray, image: Optional[np.ndarray], source: str = "csd") -> int:
+        """Add a sub-goal (and its subpolicy); the meta-controller's head grows when full (DESIGN.md gap 4)."""
+        assert self.hierarchy is not None
+        goal_id = self.hierarchy.add_subgoal(key, obs, image, source)
+        self._sync_action_space()
+        return goal_id
+
+    def _sync_action_space(self) -> None:
+        """Match the meta-controller's head and valid-action mask to the sub-goal set."""
+        n_goals = len(self.subgoals)
+        capacity = self.hierarchy.action_space.n if self.hierarchy is not None else self.action_space.n
+        if capacity > self.action_space.n:
+            self.resize_action_space(int(capacity))
+            if self.env is not None:
+                self.env.action_space = self.action_space
+        mask = np.arange(self.action_space.n) < n_goals
+        self.valid_actions = mask if n_goals > 0 else None
+
+    @property
+    def goal_obs(self) -> np.ndarray:
+        return np.stack([goal.obs for goal in self.subgoals])
+
+    # ------------------------------------------------------------------ rewards (eq. 3)
+    def _rewards(self, replay_data: Any) -> th.Tensor:
+        """r^e = beta * R_e + (1 - beta) * b / sigma(R_p) (eq. 3, Algorithm 1 lines 32-33), with the bonus
+        b = p_hat(s, g) recomputed by the current predictor for the sampled choices."""
+        extrinsic = replay_data.rewards
+        if not self.use_preferences or len(self.predictor) == 0:
+            return extrinsic
+        goals = replay_data.actions.long().flatten().cpu().numpy()
+        states = replay_data.observations.cpu().numpy().astype(self.primitive_observation_space.dtype)
+        bonus = self.predictor.score(states, self.goal_obs[goals])
+        bonus_t = th.as_tensor(bonus, dtype=extrinsic.dtype, device=extrinsic.device).reshape(-1, 1)
+        return meta_reward(extrinsic, bonus_t, sigma=self.return_normalizer.sigma, beta=self.beta)
+
+    # ------------------------------------------------------------------ acting
+    def _sample_action(self, learning_starts: int, action_noise: Any = None, n_envs: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        if self.valid_actions is None:  # no sub-goal yet: HierarchicalEnv explores at random
+            action = np.zeros(n_envs, dtype=np.int64)
+        elif self.num_timesteps < learning_starts:
+            action = self._random_actions(n_envs)
+        else:
+            action, _ = DoubleDQN.predict(self, self._last_obs, deterministic=False)
+        return action, action
+
+    def collect_rollouts(
+        self,
+        env: VecEnv,
+        callback: BaseCallback,
+        train_freq: TrainFreq,
+        replay_buffer: ReplayBuffer,
+        action_noise: Any = None,
+        learning_starts: int = 0,
+        log_interval: Optional[int] = None,
+    ) -> RolloutReturn:
+        """SB3's loop over one episode of sub-goal choices (Algorithm 1 lines 9-23); ``num_timesteps``
+        advances by the primitive steps each choice took."""
+        self.policy.set_training_mode(False)
+        num_collected_steps, num_collected_episodes = 0, 0
+        callback.on_rollout_start()
+        while should_collect_more_steps(train_freq, num_collected_steps, num_collected_episodes):
+            actions, buffer_actions = self._sample_action(learning_starts, None, env.num_envs)
+            observations = self._last_obs
+            new_obs, rewards, dones, infos = env.step(actions)
+            self.num_timesteps += int(infos[0]["primitive_steps"])
+            num_collected_steps += 1
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return RolloutReturn(num_collected_steps, num_collected_episodes, continue_training=False)
+            self._update_info_buffer(infos, dones)
+            if infos[0].get("random_episode"):
+                self._last_obs = new_obs  # nothing to learn from: no sub-goal was chosen
+            else:
+                goal = int(actions[0])
+                self.recent_choices.append(goal)
+                if self.use_preferences and len(self.predictor) > 0:  # line 12: b_t, for sigma(R_p)
+                    bonus = self.predictor.score(observations, self.goal_obs[[goal]])
+                    self.return_normalizer.update(bonus)
+                self._store_transition(replay_buffer, buffer_actions, new_obs, rewards, dones, infos)
+            self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
+            self._on_step()
+            if dones[0]:
+                num_collected_episodes += 1
+                self._episode_num += 1
+                if log_interval is not None and self._episode_num % log_interval == 0:
+                    self.dump_logs()
+        callback.on_rollout_end()
+        return RolloutReturn(num_collected_steps, num_collected_episodes, True)
+
+    def predict(
+        self,
+        observation: Union[np.ndarray, dict[str, np.ndarray]],
+        state: Optional[tuple[np.ndarray, ...]] = None,
+        episode_start: Optional[np.ndarray] = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, Optional[tuple[np.ndarray, ...]]]:
+        """Primitive actions. ``state`` = (current sub-goal per env, primitive steps spent on it), so SB3's
+        ``evaluate_policy`` works unchanged: a new sub-goal is chosen at an episode start, when the
+        current one is reached, or when it gives up after ``max_subgoal_steps``."""
+        obs = np.asarray(observation)
+        vectorized = obs.shape != self.primitive_observation_space.shape
+        batch = obs if vectorized else obs[None]
+        n_envs = batch.shape[0]
+        if state is None:
+            goals, steps = np.full(n_envs, -1, dtype=np.int64), np.zeros(n_envs, dtype=np.int64)
+        else:
+            goals, steps = np.array(state[0], dtype=np.int64), np.array(state[1], dtype=np.int64)
+        if episode_start is not None:
+            goals[np.asarray(episode_start, dtype=bool)] = -1
+        subgoals = self.subgoals
+        if not subgoals:
+            actions = np.stack([self.primitive_action_space.sample() for _ in range(n_envs)])
+            return (actions if vectorized else actions[0]), (goals, steps)
+        renew = []
+        for i in range(n_envs):
+            goal = goals[i]
+            if goal < 0 or steps[i] >= self.max_subgoal_steps:
+                renew.append(i)
+            elif self.goal_space.achieved(self.goal_space.key(batch[i]), subgoals[goal].key) and steps[i] > 0:
+                renew.append(i)
+        if renew:
+            chosen, _ = DoubleDQN.predict(self, batch[renew], deterministic=deterministic)
+            goals[renew] = chosen
+            steps[renew] = 0
+        actions = np.stack([self.subpolicies[int(goals[i])].act(batch[i], deterministic=deterministic) for i in range(n_envs)])
+        steps += 1
+        return (actions if vectorized else actions[0]), (goals, steps)
+
+    # ------------------------------------------------------------------ learning
+    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
+        from sb3_hhp.callbacks import hhp_callbacks, PrimitiveStepProgressBar
+
+        if isinstance(callback, list):
+            callback = CallbackList(callback)
+        if not isinstance(callback, BaseCallback):
+            callback = ConvertCallback(callback)
+        callbacks: list[BaseCallback] = [*hhp_callbacks(self), callback]
+        if progress_bar:
+            callbacks.append(PrimitiveStepProgressBar())
+        callback = CallbackList(callbacks)
+        callback.init_callback(self)
+        return callback
+
+    def learn(
+        self: SelfHhP,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "HhP",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfHhP:
+        """Train for ``total_timesteps`` primitive env steps (Algorithm 1)."""
+        if self.hierarchy is None:
+            raise ValueError("This model has no env: pass one with HhP.load(path, env=env) or model.set_env(env)")
+        self.query_selector.set_total_timesteps(
+            int(total_timesteps + (0 if reset_num_timesteps else self.num_timesteps))
+        )
+        self.resume_preferences()
+        return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
+
+    def resume_preferences(self) -> int:
+        """Feed the predictor every answered label of the store it has not seen yet, and count every
+        question already asked against the budget, so a resumed run loses no label and asks nothing twice."""
+        added = 0
+        for _, query, answer in self.store.answers_since(0):
+            if query.query_id in self.consumed_query_ids:
+                continue
+            self.consumed_query_ids.add(query.query_id)
+            added += int(self.predictor.add(query.state, query.goal1_obs, query.goal2_obs, answer.label))
+        state = self.query_selector.state_dict()
+        asked = self.store.count_asked()
+        if asked > state["used"]:
+            state["used"] = min(asked, self.query_budget)
+            self.query_selector.load_state_dict(state)
+        if added:
+            self.last_predictor_stats = self.predictor.train()
+        return added
+
+    def dump_logs(self) -> None:
+        """SB3's rollout logs plus HhP's: queries, sub-goals, predictor, confidence, curiosity, sub-goal success."""
+        self.logger.record("hhp/queries_used", self.query_selector.used)
+        self.logger.record("hhp/queries_left", self.query_selector.remaining)
+        self.logger.record("hhp/num_subgoals", len(self.subgoals))
+        self.logger.record("hhp/preference_labels", len(self.predictor))
+        for name, value in self.last_predictor_stats.items():
+            self.logger.record(f"hhp/predictor_{name}", value)
+        if len(self.last_confidences):
+            self.logger.record("hhp/mean_confidence", float(np.mean(self.last_confidences)))
+        self.logger.record("hhp/query_threshold", self.query_selector.current_threshold)
+        if self.hierarchy is not None and self.hierarchy.last_trace.intrinsic:
+            self.logger.record("hhp/mean_intrinsic_reward", float(np.mean(self.hierarchy.last_trace.intrinsic)))
+        self.logger.record("hhp/sigma_preference_return", self.return_normalizer.sigma)
+        for goal_id, sub in enumerate(self.subpolicies.policies):
+            if sub.success_rate is not None:
+                self.logger.record(f"subgoals/success_rate_{goal_id}", sub.success_rate)
+        super().dump_logs()
+
+    def subgoal_records(self) -> list[dict[str, Any]]:
+        """One record per sub-goal for the gallery: id, image, when found, success rate, recent choices, mean score."""
+        counts = Counter(self.recent_choices)
+        records = []
+        goal_obs = self.goal_obs if self.subgoals else None
+        states = np.stack(list(self.hierarchy.last_trace.high_obs)) if self.hierarchy and self.hierarchy.last_trace.high_obs else None
+        for goal_id, goal in enumerate(self.subgoals):
+            mean_score = None
+            if states is not None and len(self.predictor) > 0:
+                mean_score = float(np.mean(self.predictor.score(states, np.repeat(goal_obs[goal_id : goal_id + 1], len(states), 0))))
+            sub = self.subpolicies[goal_id] if goal_id < len(self.subpolicies) else None
+            records.append(
+                dict(
+                    id=goal_id,
+                    image=goal.image if goal.image is not None else np.zeros((8, 8, 3), np.uint8),
+                    found_at=int(goal.found_at),
+                    success_rate=None if sub is None else sub.success_rate,
+                    chosen_recently=int(counts.get(goal_id, 0)),
+                    mean_score=mean_score,
+                    name=self.goal_space.describe(goal.key),
+                )
+            )
+        return records
+
+    # ------------------------------------------------------------------ save / load
+    def _excluded_save_params(self) -> list[str]:
+        return [
+            *super()._excluded_save_params(),
+            "hierarchy", "rnd", "predictor", "query_selector", "return_normalizer", "subpolicies", "discovery",
+            "store", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
+            "last_confidences", "consumed_query_ids", "_loaded_subgoals", "initial_subgoals",
+        ]
+
+    def components_state(self) -> dict[str, Any]:
+        """Everything beyond the meta-controller: subpolicies, predictor (with the preference data), RND and
+        Omega, the sub-goal set with its images, the query count and budget."""
+        from dataclasses import asdict
+
+        return {
+            "format": "sb3_hhp.HhP",
+            "subgoals": [asdict(goal) for goal in self.subgoals],
+            "visits": dict(self.hierarchy.visits) if self.hierarchy is not None else self._loaded_visits,
+            "subpolicies": self.subpolicies.state_dict(),
+            "predictor": self.predictor.state_dict(),
+            "rnd": self.rnd.state_dict() if self.rnd is not None else None,
+            "query_selector": self.query_selector.state_dict(),
+            "return_normalizer": self.return_normalizer.state_dict(),
+            "consumed_query_ids": sorted(self.consumed_query_ids),
+            "oracle": self.oracle_spec if isinstance(self.oracle_spec, str) or self.oracle_spec is None else "none",
+        }
+
+    def load_components_state(self, state: dict[str, Any]) -> None:
+        from sb3_hhp.hierarchy.env import Subgoal
+
+        if not isinstance(state, dict) or state.get("format") != "sb3_hhp.HhP":
+            raise ValueError("This file holds no HhP components: it was not saved by sb3_hhp.HhP.save")
+        subgoals = [Subgoal(**goal) for goal in state["subgoals"]]
+        self.subpolicies.load_state_dict(state["subpolicies"])
+        if self.hierarchy is not None:
+            self.hierarchy.subgoals = subgoals
+            self.hierarchy.visits = Counter(state["visits"])
+            self.hierarchy.action_space = spaces.Discrete(int(self.action_space.n))
+        self._loaded_subgoals = subgoals
+        self._loaded_visits = state["visits"]
+        self.predictor.load_state_dict(state["predictor"])
+        if self.rnd is not None and state["rnd"] is not None:
+            self.rnd.load_state_dict(state["rnd"])
+        self.query_selector.load_state_dict(state["query_selector"])
+        self.return_normalizer.load_state_dict(state["return_normalizer"])
+        self.consumed_query_ids = set(state["consumed_query_ids"])
+        self._sync_action_space()
+
+    def save(self, path: Any, exclude: Optional[list[str]] = None, include: Optional[list[str]] = None) -> None:
+        """SB3's save (meta-controller) plus one more zip member with every other component."""
+        super().save(path, exclude=exclude, include=include)
+        if isinstance(path, (str,)) or hasattr(path, "__fspath__"):
+            import pathlib
+
+            path = pathlib.Path(path)
+            if path.suffix == "":
+                path = path.with_suffix(".zip")
+        buffer = io.BytesIO()
+        th.save(self.components_state(), buffer)
+        with zipfile.ZipFile(path, mode="a") as archive:
+            archive.writestr(COMPONENTS_FILE, buffer.getvalue())
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: type[SelfHhP],
+        path: Any,
+        env: Optional[GymEnv] = None,
+        device: Union[th.device, str] = "auto",
+        custom_objects: Optional[dict[str, Any]] = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfHhP:
+        """Load a saved HhP (everything :meth:`save` wrote); give ``env`` to go on training."""
+        import pathlib
+
+        file = pathlib.Path(path) if isinstance(path, str) or hasattr(path, "__fspath__") else path
+        if isinstance(file, pathlib.Path) and not file.exists() and file.with_suffix(".zip").exists():
+            file = file.with_suffix(".zip")
+        try:
+            with zipfile.ZipFile(file) as archive:
+                if COMPONENTS_FILE not in archive.namelist():
+                    raise ValueError(f"{path} is not an HhP model: it has no {COMPONENTS_FILE} (was it saved by HhP.save?)")
+                components = th.load(io.BytesIO(archive.read(COMPONENTS_FILE)), map_location="cpu", weights_only=False)
+        except zipfile.BadZipFile as error:
+            raise ValueError(f"{path} is not a saved HhP model (not a zip archive): {error}") from error
+        model = super().load(file, env=None, device=device, custom_objects=custom_objects,
+                             print_system_info=print_system_info, force_reset=force_reset, **kwargs)
+        model.load_components_state(components)
+        if env is not None:
+            model.set_env(env, force_reset=force_reset)
+        return model
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        """Attach a (new) env: it is wrapped into a HierarchicalEnv around the current sub-goal set."""
+        base_env = _single_env(env)
+        assert base_env is not None
+        base_env = wrap_env(base_env)
+        if base_env.observation_space != self.primitive_observation_space:
+            raise ValueError(
+                f"The env's observation space {base_env.observation_space} differs from the model's "
+                f"{self.primitive_observation_space}"
+            )
+        hierarchy = HierarchicalEnv(
+            base_env, self.goal_space, subpolicies=self.subpolicies, rnd=self.rnd,
+            alpha=self.alpha if self.use_curiosity else 0.0, max_subgoal_steps=self.max_subgoal_steps,
+            capacity=int(self.action_space.n),
+        )
+        hierarchy.subgoals = list(self.subgoals)
+        hierarchy.visits = Counter(getattr(self, "_loaded_visits", {}) or (self.hierarchy.visits if self.hierarchy else {}))
+        hierarchy.num_steps = self.num_timesteps
+        self.hierarchy = hierarchy
+        self._attach(hierarchy)
+        super().set_env(hierarchy, force_reset=force_reset)

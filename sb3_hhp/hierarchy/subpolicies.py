@@ -1,0 +1,220 @@
+"""The subpolicy set: one SB3 off-policy learner per sub-goal, trained online while it acts.
+
+Each sub-goal ``g`` owns a subpolicy ``pi_g``: a :class:`~sb3_hhp.dqn.DoubleDQN` (Double DQN with
+prioritized replay) for discrete actions or an SB3 ``DDPG`` for continuous ones. It is driven by
+:class:`~sb3_hhp.hierarchy.env.HierarchicalEnv`, one primitive step at a time (Algorithm 1, lines
+15-20): act, store the transition with the reward of eq. 6, one gradient step.
+"""
+
+from typing import Any, Optional
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import DDPG
+from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.noise import NormalActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.utils import get_linear_fn
+
+from sb3_hhp.dqn.dqn import DoubleDQN
+
+
+class SpacesEnv(gym.Env):
+    """A stand-in env that only carries spaces, so SB3 learners can be built without a real env."""
+
+    def __init__(self, observation_space: spaces.Space, action_space: spaces.Space) -> None:
+        self.observation_space = observation_space
+        self.action_space = action_space
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):  # pragma: no cover - never stepped
+        raise RuntimeError("SpacesEnv only carries spaces; subpolicies are stepped by HierarchicalEnv")
+
+    def step(self, action):  # pragma: no cover - never stepped
+        raise RuntimeError("SpacesEnv only carries spaces; subpolicies are stepped by HierarchicalEnv")
+
+
+def default_subpolicy_kwargs(action_space: spaces.Space) -> dict[str, Any]:
+    """The paper's defaults (section 5.1): Adam lr 1e-3, batch 128, buffers of 50K, targets every 2,000 steps."""
+    kwargs: dict[str, Any] = dict(
+        learning_rate=1e-3, buffer_size=50_000, learning_starts=500, batch_size=128, gamma=0.99,
+        policy_kwargs=dict(net_arch=[256, 256]),
+    )
+    if isinstance(action_space, spaces.Discrete):
+        kwargs.update(target_update_interval=2_000, exploration_fraction=1.0,
+                      exploration_initial_eps=1.0, exploration_final_eps=0.05)
+    return kwargs
+
+
+class Subpolicy:
+    """One sub-goal's learner, stepped by hand (no ``learn`` loop).
+
+    :param model: the SB3 off-policy model (its ``learn`` is never called)
+    :param exploration_steps: own steps over which epsilon decays (discrete) or the noise is kept (continuous)
+    :param train_freq: a gradient step every ``train_freq`` own steps (1 in the paper)
+    """
+
+    def __init__(self, model: OffPolicyAlgorithm, exploration_steps: int, train_freq: int = 1) -> None:
+        self.model = model
+        self.exploration_steps = exploration_steps
+        self.train_freq = train_freq
+        self.num_steps = 0
+        self.successes = 0
+        self.attempts = 0
+        self.recent: list[bool] = []
+        self._discrete = isinstance(model.action_space, spaces.Discrete)
+        if self._discrete:
+            model.exploration_schedule = get_linear_fn(
+                model.exploration_initial_eps, model.exploration_final_eps, 1.0  # type: ignore[attr-defined]
+            )
+
+    @property
+    def exploration_rate(self) -> float:
+        return float(getattr(self.model, "exploration_rate", 0.0))
+
+    def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """One primitive action for one observation (epsilon-greedy or noisy unless deterministic)."""
+        model = self.model
+        if self._discrete:
+            if not deterministic and model.action_space.np_random.random() < self.exploration_rate:
+                return np.asarray(model.action_space.sample())
+            with th.no_grad():
+                obs_tensor = th.as_tensor(obs[None], device=model.device)
+                return model.policy._predict(obs_tensor, deterministic=True).cpu().numpy()[0]
+        action, _ = model.predict(obs, deterministic=True)
+        if not deterministic and model.action_noise is not None:
+            action = np.clip(action + model.action_noise(), model.action_space.low, model.action_space.high)
+        return action
+
+    def observe(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: float, done: bool) -> None:
+        """Store one transition (Algorithm 1 line 19) and take a gradient step (line 20)."""
+        model = self.model
+        buffer_action = action
+        if not self._discrete:
+            buffer_action = model.policy.scale_action(action)
+        model.replay_buffer.add(  # type: ignore[union-attr]
+            obs[None], next_obs[None], np.asarray([buffer_action]), np.asarray([reward], np.float32),
+            np.asarray([done]), [{}],
+        )
+        self.num_steps += 1
+        model.num_timesteps = self.num_steps
+        model._current_progress_remaining = max(0.0, 1.0 - self.num_steps / self.exploration_steps)
+        if self.num_steps > model.learning_starts and self.num_steps % self.train_freq == 0:
+            model.train(gradient_steps=1, batch_size=model.batch_size)
+        if self._discrete:
+            model._on_step()  # target network every target_update_interval steps, epsilon schedule
+
+    def record_outcome(self, success: bool, window: int = 100) -> None:
+        self.attempts += 1
+        self.successes += int(success)
+        self.recent.append(success)
+        if len(self.recent) > window:
+            del self.recent[0]
+
+    @property
+    def success_rate(self) -> Optional[float]:
+        return float(np.mean(self.recent)) if self.recent else None
+
+
+class SubpolicySet:
+    """Builds and holds one :class:`Subpolicy` per sub-goal.
+
+    :param observation_space: the primitive observation space
+    :param action_space: the primitive action space (Discrete -> DoubleDQN, Box -> DDPG)
+    :param policy: SB3 policy name for the subpolicies ("MlpPolicy", "CnnPolicy", ...)
+    :param subpolicy_kwargs: keyword arguments of the subpolicy models (override the paper defaults)
+    :param exploration_steps: own steps over which a new subpolicy's epsilon decays to its final value
+    :param logger: the logger given to every subpolicy model (a silent one by default)
+    :param device: torch device
+    :param seed: base seed; subpolicy ``i`` gets ``seed + i``
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        policy: str = "MlpPolicy",
+        subpolicy_kwargs: Optional[dict[str, Any]] = None,
+        exploration_steps: int = 20_000,
+        logger: Optional[Logger] = None,
+        device: str | th.device = "auto",
+        seed: Optional[int] = None,
+    ) -> None:
+        if not isinstance(action_space, (spaces.Discrete, spaces.Box)):
+            raise ValueError(
+                f"Subpolicies need a Discrete (DoubleDQN) or Box (DDPG) action space, got {action_space}"
+            )
+        if exploration_steps < 1:
+            raise ValueError(f"exploration_steps must be >= 1, got {exploration_steps}")
+        self.observation_space = observation_space
+        self.action_space = action_space
+        self.policy = policy
+        self.kwargs = {**default_subpolicy_kwargs(action_space), **(subpolicy_kwargs or {})}
+        self.exploration_steps = exploration_steps
+        self.logger = logger or Logger(folder=None, output_formats=[])
+        self.device = device
+        self.seed = seed
+        self.policies: list[Subpolicy] = []
+
+    def __len__(self) -> int:
+        return len(self.policies)
+
+    def __getitem__(self, index: int) -> Subpolicy:
+        return self.policies[index]
+
+    def add(self) -> Subpolicy:
+        """A freshly initialised subpolicy for a new sub-goal (section 5.1: random initialisation)."""
+        env = SpacesEnv(self.observation_space, self.action_space)
+        seed = None if self.seed is None else self.seed + len(self.policies)
+        kwargs = dict(self.kwargs)
+        if isinstance(self.action_space, spaces.Discrete):
+            model: OffPolicyAlgorithm = DoubleDQN(self.policy, env, device=self.device, seed=seed, **kwargs)
+        else:
+            kwargs.setdefault(
+                "action_noise",
+                NormalActionNoise(np.zeros(self.action_space.shape), 0.1 * np.ones(self.action_space.shape)),
+            )
+            model = DDPG(self.policy, env, device=self.device, seed=seed, **kwargs)
+        model.set_logger(self.logger)
+        model._current_progress_remaining = 1.0
+        subpolicy = Subpolicy(model, self.exploration_steps)
+        self.policies.append(subpolicy)
+        return subpolicy
+
+    def state_dict(self) -> list[dict[str, Any]]:
+        """Weights, optimiser states and counters of every subpolicy (replay buffers are not saved, as in SB3)."""
+        return [
+            {
+                "policy": sub.model.policy.state_dict(),
+                "optimizers": [opt.state_dict() for opt in _optimizers(sub.model)],
+                "num_steps": sub.num_steps,
+                "n_calls": getattr(sub.model, "_n_calls", 0),
+                "successes": sub.successes,
+                "attempts": sub.attempts,
+                "recent": list(sub.recent),
+            }
+            for sub in self.policies
+        ]
+
+    def load_state_dict(self, states: list[dict[str, Any]]) -> None:
+        self.policies = []
+        for state in states:
+            sub = self.add()
+            sub.model.policy.load_state_dict(state["policy"])
+            for opt, opt_state in zip(_optimizers(sub.model), state["optimizers"]):
+                opt.load_state_dict(opt_state)
+            sub.num_steps = state["num_steps"]
+            sub.model.num_timesteps = sub.num_steps
+            sub.model._n_calls = state["n_calls"]
+            sub.model._current_progress_remaining = max(0.0, 1.0 - sub.num_steps / self.exploration_steps)
+            if hasattr(sub.model, "exploration_schedule"):
+                sub.model.exploration_rate = sub.model.exploration_schedule(sub.model._current_progress_remaining)
+            sub.successes, sub.attempts, sub.recent = state["successes"], state["attempts"], list(state["recent"])
+
+
+def _optimizers(model: OffPolicyAlgorithm) -> list[th.optim.Optimizer]:
+    policy = model.policy
+    if hasattr(policy, "actor"):
+        return [policy.actor.optimizer, policy.critic.optimizer]
+    return [policy.optimizer]

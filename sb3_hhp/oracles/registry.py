@@ -1,0 +1,65 @@
+"""Oracles by name, for ``HhP(oracle="scripted")`` and ``python -m sb3_hhp.train --oracle NAME``."""
+
+from typing import Any, Optional
+
+from gymnasium import spaces
+
+from sb3_hhp.goals.base import GoalSpace
+from sb3_hhp.oracles.base import Oracle
+
+ORACLE_NAMES = ("scripted", "noisy-scripted", "synthetic", "web", "terminal", "none")
+
+
+def make_oracle(
+    name: str,
+    goal_space: GoalSpace,
+    observation_space: spaces.Space,
+    store: Any = None,
+    seed: Optional[int] = None,
+    **kwargs: Any,
+) -> Optional[Oracle]:
+    """Build the oracle called ``name`` for a goal space.
+
+    :param name: one of :data:`ORACLE_NAMES`
+    :param goal_space: the goal space of the task (decides which scripted oracle applies)
+    :param observation_space: observations the synthetic oracle's network reads
+    :param store: the preference store (the web oracle's queue)
+    :param seed: seed of random oracles
+    :param kwargs: passed to the oracle (e.g. ``rho`` for "noisy-scripted")
+    """
+    if name not in ORACLE_NAMES:
+        raise ValueError(f"Unknown oracle {name!r}: use one of {', '.join(ORACLE_NAMES)} or pass an Oracle instance")
+    if name == "none":
+        return None
+    if name in ("scripted", "noisy-scripted"):
+        rho = kwargs.pop("rho", 0.1)
+        if goal_space.name == "minigrid":
+            from sb3_hhp.oracles.scripted import MiniGridScriptedOracle
+
+            oracle: Oracle = MiniGridScriptedOracle(use_color=getattr(goal_space, "use_color", False), **kwargs)
+        elif goal_space.name == "fetch":
+            from sb3_hhp.oracles.fetch import FetchScriptedOracle
+
+            oracle = FetchScriptedOracle(**kwargs)
+        else:
+            raise ValueError(
+                f"There is no scripted oracle for the {goal_space.name!r} goal space: use 'synthetic', 'web' or 'terminal'"
+            )
+        if name == "noisy-scripted":
+            from sb3_hhp.oracles.noisy import NoisyOracle
+
+            oracle = NoisyOracle(oracle, rho=rho, seed=seed)
+        return oracle
+    if name == "synthetic":
+        from sb3_hhp.oracles.synthetic import SyntheticOracle
+
+        return SyntheticOracle(observation_space, seed=seed, **kwargs)
+    if name == "web":
+        from sb3_hhp.oracles.web import WebOracle
+
+        if store is None:
+            raise ValueError("The web oracle needs a preference store (preference_db=PATH)")
+        return WebOracle(store, **kwargs)
+    from sb3_hhp.oracles.terminal import TerminalOracle
+
+    return TerminalOracle(**kwargs)
