@@ -1,0 +1,260 @@
+"""MiniGrid goal space: the egocentric observation, sub-goal keys after real actions, images, and the
+scripted oracle's plan and preferences (sb3_hhp.goals.minigrid, sb3_hhp.oracles.scripted)."""
+
+import gymnasium as gym
+import minigrid  # noqa: F401  (registers the MiniGrid envs)
+import numpy as np
+import pytest
+from minigrid.core.constants import COLORS, DIR_TO_VEC, OBJECT_TO_IDX, STATE_TO_IDX
+from minigrid.core.world_object import Ball, Key
+
+from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
+from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query
+from sb3_hhp.oracles.scripted import plan_keys
+
+EMPTY = OBJECT_TO_IDX["empty"]
+WALL = OBJECT_TO_IDX["wall"]
+KEY = OBJECT_TO_IDX["key"]
+DOOR = OBJECT_TO_IDX["door"]
+GOAL = OBJECT_TO_IDX["goal"]
+OPEN, LOCKED = STATE_TO_IDX["open"], STATE_TO_IDX["locked"]
+
+# the situations of a DoorKey plan, as (carried, front, front state) keys
+FACING_KEY = (EMPTY, KEY, 0)
+CARRYING_KEY = (KEY, EMPTY, 0)
+FACING_LOCKED_DOOR = (EMPTY, DOOR, LOCKED)
+CARRYING_KEY_FACING_LOCKED_DOOR = (KEY, DOOR, LOCKED)
+CARRYING_KEY_FACING_OPEN_DOOR = (KEY, DOOR, OPEN)
+CARRYING_KEY_FACING_GOAL = (KEY, GOAL, 0)
+
+
+def _cell(grid, x: int, y: int) -> np.ndarray:
+    """MiniGrid's encoding of one cell (empty and out-of-grid cells as Grid.encode writes them)."""
+    if not (0 <= x < grid.width and 0 <= y < grid.height):
+        return np.zeros(3, np.uint8)
+    obj = grid.get(x, y)
+    return np.array([EMPTY, 0, 0], np.uint8) if obj is None else np.asarray(obj.encode(), np.uint8)
+
+
+def _find(base, type_name: str) -> tuple[int, int]:
+    for x in range(base.width):
+        for y in range(base.height):
+            obj = base.grid.get(x, y)
+            if obj is not None and obj.type == type_name:
+                return x, y
+    raise AssertionError(f"no {type_name} in the grid")
+
+
+def _place(base, pos: tuple[int, int], direction: int) -> None:
+    base.agent_pos = (int(pos[0]), int(pos[1]))
+    base.agent_dir = int(direction)
+
+
+@pytest.fixture
+def doorkey5():
+    env = MiniGridEgocentricObs(gym.make("MiniGrid-DoorKey-5x5-v0"))
+    env.reset(seed=3)
+    yield env
+    env.close()
+
+
+def test_wrap_env_and_goal_space_auto() -> None:
+    raw = gym.make("MiniGrid-DoorKey-5x5-v0")
+    wrapped = wrap_env(raw)
+    assert isinstance(wrapped, MiniGridEgocentricObs)
+    # 5x5 grid -> a (2 * 5 - 1)-square egocentric canvas of (object, colour, state)
+    assert wrapped.observation_space.shape == (9, 9, 3)
+    assert wrap_env(wrapped) is wrapped  # already wrapped: left alone
+    assert isinstance(make_goal_space("auto", wrapped), MiniGridGoalSpace)
+    obs, _ = wrapped.reset(seed=0)
+    assert wrapped.observation_space.contains(obs)
+
+
+@pytest.mark.parametrize("direction", [0, 1, 2, 3])
+def test_egocentric_obs_agent_at_centre_facing_up(doorkey5: MiniGridEgocentricObs, direction: int) -> None:
+    base = doorkey5.unwrapped
+    _place(base, base.agent_pos, direction)
+    obs = doorkey5.observation(None)
+    c = obs.shape[0] // 2
+    ax, ay = (int(v) for v in base.agent_pos)
+    # the agent's own cell holds what it carries: nothing
+    np.testing.assert_array_equal(obs[c, c], [EMPTY, 0, 0])
+    # "up" in the canvas (y - 1) is the env's front cell, whatever the agent's direction
+    fx, fy = (int(v) for v in base.front_pos)
+    np.testing.assert_array_equal(obs[c, c - 1], _cell(base.grid, fx, fy))
+    # and the rest of the neighbourhood is rotated with it: left, right and behind
+    for canvas_offset, turn in (((-1, 0), -1), ((1, 0), 1), ((0, 1), 2)):
+        dx, dy = DIR_TO_VEC[(direction + turn) % 4]
+        expected = _cell(base.grid, ax + dx, ay + dy)
+        np.testing.assert_array_equal(obs[c + canvas_offset[0], c + canvas_offset[1]], expected)
+    # every grid cell appears exactly once: the canvas holds as many walls as the grid
+    n_walls = sum(_cell(base.grid, x, y)[0] == WALL for x in range(base.width) for y in range(base.height))
+    assert int((obs[..., 0] == WALL).sum()) == n_walls
+
+
+def test_egocentric_obs_shows_the_carried_object_in_the_agent_cell(doorkey5: MiniGridEgocentricObs) -> None:
+    base = doorkey5.unwrapped
+    base.carrying = Ball("blue")
+    obs = doorkey5.observation(None)
+    c = obs.shape[0] // 2
+    np.testing.assert_array_equal(obs[c, c], Ball("blue").encode())
+    assert MiniGridGoalSpace().key(obs)[0] == OBJECT_TO_IDX["ball"]
+    assert MiniGridGoalSpace(use_color=True).key(obs)[:2] == tuple(int(v) for v in Ball("blue").encode()[:2])
+
+
+def test_keys_along_a_scripted_doorkey_episode(doorkey5: MiniGridEgocentricObs) -> None:
+    """Turn to the key, pick it up, open the door, reach the goal: each key read off the observation."""
+    goal_space = MiniGridGoalSpace()
+    base = doorkey5.unwrapped
+    actions = base.actions
+    kx, ky = _find(base, "key")
+    dx_, dy_ = _find(base, "door")
+    gx, gy = _find(base, "goal")
+
+    # stand beside the key (above or below it, inside the left room), facing away; turn to face it
+    below_free = base.grid.get(kx, ky + 1) is None and (kx, ky + 1) != (dx_, dy_)
+    stand, facing = ((kx, ky + 1), 3) if below_free else ((kx, ky - 1), 1)
+    _place(base, stand, (facing + 2) % 4)
+    obs = doorkey5.observation(None)
+    assert goal_space.key(obs)[0] == EMPTY and goal_space.key(obs) != FACING_KEY
+    obs, *_ = doorkey5.step(actions.left)
+    obs, *_ = doorkey5.step(actions.left)
+    assert base.agent_dir == facing
+    assert goal_space.key(obs) == FACING_KEY
+    assert goal_space.describe(FACING_KEY) == "carrying nothing, facing key"
+
+    obs, *_ = doorkey5.step(actions.pickup)
+    assert base.carrying is not None and base.carrying.type == "key"
+    assert goal_space.key(obs) == CARRYING_KEY
+
+    # stand in front of the locked door (west of it, where the agent's room is), facing it
+    _place(base, (dx_ - 1, dy_), 0)
+    obs = doorkey5.observation(None)
+    assert goal_space.key(obs) == CARRYING_KEY_FACING_LOCKED_DOOR
+    assert goal_space.describe(CARRYING_KEY_FACING_LOCKED_DOOR) == "carrying key, facing locked door"
+    obs, *_ = doorkey5.step(actions.toggle)
+    assert base.grid.get(dx_, dy_).is_open
+    assert goal_space.key(obs) == CARRYING_KEY_FACING_OPEN_DOOR
+
+    # face the goal from the cell above it and step on it
+    _place(base, (gx, gy - 1), 1)
+    obs = doorkey5.observation(None)
+    assert goal_space.key(obs) == CARRYING_KEY_FACING_GOAL
+    obs, reward, terminated, _, _ = doorkey5.step(actions.forward)
+    assert terminated and reward > 0
+    key = goal_space.terminal_key(obs, float(reward), terminated)
+    assert key == SUCCESS_KEY
+    assert goal_space.achieved(key, SUCCESS_KEY) and not goal_space.achieved(key, CARRYING_KEY_FACING_GOAL)
+    # without the reward, the same observation is an ordinary key
+    assert goal_space.terminal_key(obs, 0.0, False) == goal_space.key(obs) != SUCCESS_KEY
+
+
+def test_image_of_draws_the_egocentric_observation(doorkey5: MiniGridEgocentricObs) -> None:
+    goal_space = MiniGridGoalSpace(tile_size=8)
+    base = doorkey5.unwrapped
+    kx, ky = _find(base, "key")
+    below_free = base.grid.get(kx, ky + 1) is None
+    _place(base, *(((kx, ky + 1), 3) if below_free else ((kx, ky - 1), 1)))
+    obs = doorkey5.observation(None)
+    image = goal_space.image_of(obs)
+    size = obs.shape[0] * 8
+    assert image.shape == (size, size, 3) and image.dtype == np.uint8
+    c = obs.shape[0] // 2
+
+    def tile(x: int, y: int) -> np.ndarray:
+        return image[y * 8 : (y + 1) * 8, x * 8 : (x + 1) * 8].reshape(-1, 3)
+
+    red, yellow = np.asarray(COLORS["red"]), np.asarray(COLORS["yellow"])
+    assert (tile(c, c) == red).all(axis=1).any()  # the agent, in the centre
+    assert (tile(c, c - 1) == yellow).all(axis=1).any()  # the (yellow) key in front of it
+    assert not (tile(c, c + 1) == yellow).all(axis=1).any()
+    # a different situation draws a different image
+    _place(base, base.agent_pos, (base.agent_dir + 2) % 4)
+    assert not np.array_equal(goal_space.image_of(doorkey5.observation(None)), image)
+
+
+def test_render_gives_the_rgb_frame_of_the_env(doorkey5: MiniGridEgocentricObs) -> None:
+    frame = MiniGridGoalSpace(tile_size=8).render(doorkey5)
+    assert frame.shape == (5 * 8, 5 * 8, 3) and frame.dtype == np.uint8
+
+
+# ---------------------------------------------------------------------------- scripted oracle
+
+
+def _query(state_info: dict, key1: tuple, key2: tuple) -> Query:
+    zeros = np.zeros((3, 3, 3), np.uint8)
+    return Query(
+        state=zeros, goal1=0, goal2=1, goal1_obs=zeros, goal2_obs=zeros,
+        info={"state": state_info, "goal1_key": list(key1), "goal2_key": list(key2)},
+    )
+
+
+@pytest.mark.parametrize("env_id", ["MiniGrid-DoorKey-8x8-v0", "MiniGrid-DoorKey-16x16-v0"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_plan_milestones_in_order(env_id: str, seed: int) -> None:
+    env = wrap_env(gym.make(env_id))
+    env.reset(seed=seed)
+    goal_space = MiniGridGoalSpace()
+    keys = plan_keys(goal_space.privileged(env), goal_space)
+    assert keys is not None and keys[-1] == SUCCESS_KEY
+    milestones = [FACING_KEY, CARRYING_KEY_FACING_LOCKED_DOOR, CARRYING_KEY_FACING_OPEN_DOOR, CARRYING_KEY_FACING_GOAL]
+    positions = [keys.index(key) for key in milestones]
+    assert positions == sorted(positions) and len(set(positions)) == 4
+    assert positions[-1] == len(keys) - 2  # facing the goal, then one step onto it
+    assert SUCCESS_KEY not in keys[:-1]
+    # the plan is a shortest one: the agent never faces the locked door without the key
+    assert FACING_LOCKED_DOOR not in keys
+    env.close()
+
+
+@pytest.mark.parametrize("env_id", ["MiniGrid-DoorKey-8x8-v0", "MiniGrid-DoorKey-16x16-v0"])
+def test_scripted_oracle_preferences(env_id: str) -> None:
+    env = wrap_env(gym.make(env_id))
+    env.reset(seed=0)
+    goal_space = MiniGridGoalSpace()
+    oracle = MiniGridScriptedOracle()
+    start = goal_space.privileged(env)
+    # at the start: the key before the locked door, in either order of the question
+    assert oracle.answer(_query(start, FACING_KEY, FACING_LOCKED_DOOR)) == Label.FIRST
+    assert oracle.answer(_query(start, FACING_LOCKED_DOOR, FACING_KEY)) == Label.SECOND
+    # two sub-goals off the plan: equal
+    off_plan_1, off_plan_2 = (EMPTY, OBJECT_TO_IDX["ball"], 0), (OBJECT_TO_IDX["box"], WALL, 0)
+    assert oracle.answer(_query(start, off_plan_1, off_plan_2)) == Label.EQUAL
+
+    # once the key is carried: "carrying the key, facing the locked door" beats "facing the key"
+    base = env.unwrapped
+    kx, ky = _find(base, "key")
+    base.carrying = base.grid.get(kx, ky)
+    base.grid.set(kx, ky, None)
+    carrying = goal_space.privileged(env)
+    assert carrying["carrying"][0] == KEY
+    assert oracle.answer(_query(carrying, CARRYING_KEY_FACING_LOCKED_DOOR, FACING_KEY)) == Label.FIRST
+    assert oracle.answer(_query(carrying, FACING_KEY, CARRYING_KEY_FACING_LOCKED_DOOR)) == Label.SECOND
+    # the asynchronous protocol gives the same answer, under the oracle's name
+    query = _query(carrying, CARRYING_KEY_FACING_LOCKED_DOOR, FACING_KEY)
+    oracle.submit([query])
+    (answer,) = oracle.collect()
+    assert (answer.query_id, answer.label, answer.annotator) == (query.query_id, Label.FIRST, "scripted")
+    env.close()
+
+
+def test_scripted_oracle_needs_privileged_info() -> None:
+    zeros = np.zeros((3, 3, 3), np.uint8)
+    query = Query(state=zeros, goal1=0, goal2=1, goal1_obs=zeros, goal2_obs=zeros, info={})
+    with pytest.raises(ValueError, match="Query.info"):
+        MiniGridScriptedOracle().answer(query)
+
+
+def test_plan_of_a_state_that_needs_the_key_in_hand() -> None:
+    """A hand-built 5x5 DoorKey: the plan from beside the key is pick up -> door -> goal, with no detour."""
+    env = wrap_env(gym.make("MiniGrid-DoorKey-5x5-v0"))
+    env.reset(seed=3)
+    base = env.unwrapped
+    kx, ky = _find(base, "key")
+    base.grid.set(kx, ky, None)
+    base.carrying = Key("yellow")
+    keys = plan_keys(MiniGridGoalSpace().privileged(env))
+    assert keys is not None and keys[-1] == SUCCESS_KEY
+    assert all(key[0] == KEY for key in keys[:-1])  # never drops the key on a shortest plan
+    assert keys.index(CARRYING_KEY_FACING_LOCKED_DOOR) < keys.index(CARRYING_KEY_FACING_OPEN_DOOR)
+    env.close()
