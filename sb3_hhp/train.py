@@ -1,0 +1,600 @@
+"""Train HhP from a YAML file with RL Zoo: ``python -m sb3_hhp.train --env ENV --oracle NAME -n STEPS``.
+
+This entry point registers HhP with RL Zoo and hands the rest to :func:`rl_zoo3.train.train`, so RL
+Zoo's evaluation callback, checkpoints, saved configs (``config.yml``, ``args.yml``, ``command.txt``),
+TensorBoard logs and optuna tuning (``-optimize``) work for HhP unchanged:
+
+- ``rl_zoo3.utils.ALGOS["hhp"] = HhP``, a sampler in ``rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER["hhp"]``
+  (and its converter), done here because ``--algo``'s choices are fixed when RL Zoo parses its arguments;
+- :class:`HhPExperimentManager`, RL Zoo's :class:`~rl_zoo3.exp_manager.ExperimentManager` with four
+  changes: an env id with no entry of its own in the YAML takes its domain's entry (``minigrid`` for any
+  ``MiniGrid-*`` id); unknown keys are refused before training; ``--oracle`` and a durable preference
+  database in the run folder (``<log folder>/hhp/<ENV>_<run>/preferences.sqlite``) join the
+  hyperparameters; the callbacks count primitive env steps (below).
+
+**Frequencies count primitive steps.** SB3 calls a callback once per ``env.step`` of the algorithm's
+env; HhP's env is the semi-MDP over sub-goals, so a call is one *sub-goal choice*, which takes up to
+``max_subgoal_steps`` primitive steps. RL Zoo's ``EvalCallback`` (``--eval-freq``), ``CheckpointCallback``
+(``--save-freq``), the trials' evaluations of ``-optimize`` and the ``--progress`` bar would therefore
+count choices. Here they are triggered by ``model.num_timesteps`` instead, which counts primitive steps
+like ``-n``: ``--eval-freq 10000`` evaluates every 10,000 primitive steps (SB3's
+:class:`~stable_baselines3.common.callbacks.EveryNTimesteps` wraps them).
+
+After training, the deterministic policy is evaluated on fresh environments (built like the training
+env, by RL Zoo) whose seeds start at ``seed + 10_000`` (:func:`eval_seeds`), never a training seed; the
+summary (success rate, mean return, queries used, sub-goals found, fps) is printed and, with
+``--summary-json``, written as JSON.
+"""
+
+import argparse
+import contextlib
+import difflib
+import importlib
+import inspect
+import json
+import os
+import sys
+import time
+from collections import OrderedDict
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from pprint import pprint
+from typing import Any, Optional
+
+import numpy as np
+import yaml
+from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback, EvalCallback, EveryNTimesteps, ProgressBarCallback
+
+#: the algorithm's name in RL Zoo (``--algo hhp``, ``<log folder>/hhp/``)
+ALGO_NAME = "hhp"
+#: eval seeds start this far above the training seed (training uses seed .. seed + n_envs - 1)
+EVAL_SEED_OFFSET = 10_000
+#: the file name of the preference database inside the run folder
+PREFERENCE_DB_NAME = "preferences.sqlite"
+#: keys RL Zoo reads itself (they never reach HhP's constructor)
+ZOO_KEYS = frozenset(
+    {"n_timesteps", "policy", "env_wrapper", "n_envs", "normalize", "frame_stack", "callback", "vec_env_wrapper",
+     "env_kwargs", "monitor_kwargs"}
+)
+#: constructor arguments RL Zoo sets from the command line; a YAML file must not set them
+COMMAND_LINE_KEYS = {"seed": "--seed", "verbose": "--verbose", "device": "--device", "tensorboard_log": "--tensorboard-log"}
+#: the YAML entry a domain's env ids fall back to when they have no entry of their own
+DOMAIN_KEYS = ("minigrid", "atari", "fetch")
+#: vectorized evaluation: at most this many fresh envs at once (one episode each)
+EVAL_CHUNK = 50
+
+
+class ConfigError(ValueError):
+    """A wrong command line or hyperparameter file: reported in one line, before training starts."""
+
+
+# ---------------------------------------------------------------------- hyperparameter file
+
+
+def default_config_path() -> Path:
+    """``hyperparams/hhp.yml``, found from the package so that any working directory works.
+
+    Looks in ``sb3_hhp/hyperparams/`` (a copy shipped inside the package) then in the source tree's
+    ``hyperparams/`` next to the package (a checkout or an editable install).
+    """
+    package = Path(__file__).resolve().parent
+    candidates = [package / "hyperparams" / f"{ALGO_NAME}.yml", package.parent / "hyperparams" / f"{ALGO_NAME}.yml"]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    raise ConfigError(
+        f"No default hyperparameter file: looked for {', '.join(map(str, candidates))}; pass one with --conf-file FILE"
+    )
+
+
+def domain_of(env_id: str) -> Optional[str]:
+    """The domain of a registered env id, whose YAML entry serves ids with no entry of their own.
+
+    :param env_id: a gymnasium env id (registered)
+    :return: "minigrid", "atari", "fetch" or None
+    """
+    import gymnasium as gym
+
+    entry_point = str(gym.spec(env_id).entry_point)
+    if "minigrid" in entry_point:
+        return "minigrid"
+    if "AtariEnv" in entry_point or "ale_py" in entry_point:
+        return "atari"
+    if "gymnasium_robotics" in entry_point and env_id.startswith("Fetch"):
+        return "fetch"
+    return None
+
+
+def select_entry(table: dict[str, Any], env_id: str, config: str = "the hyperparameter file") -> str:
+    """The key of ``table`` that holds ``env_id``'s hyperparameters: the id itself, else its domain's
+    entry (:data:`DOMAIN_KEYS`), else ``default`` (RL Zoo's convention).
+
+    :param table: the parsed YAML file (env id or domain -> hyperparameters)
+    :param env_id: a registered gymnasium env id
+    :param config: the file's name, for the error message
+    """
+    if not isinstance(table, dict):
+        raise ConfigError(f"{config} must map env ids to hyperparameters, got {type(table).__name__}")
+    if env_id in table:
+        return env_id
+    domain = domain_of(env_id)
+    if domain is not None and domain in table:
+        return domain
+    if "default" in table:
+        return "default"
+    raise ConfigError(
+        f"No hyperparameters for {env_id} in {config}: add an entry {env_id!r}"
+        + (f" or {domain!r}" if domain else "")
+        + f" (entries: {', '.join(map(str, table))})"
+    )
+
+
+def hhp_arguments() -> list[str]:
+    """The keyword arguments of :class:`~sb3_hhp.HhP` a hyperparameter file may set."""
+    from sb3_hhp.hhp import HhP
+
+    excluded = {"self", "policy", "env", "_init_setup_model", *COMMAND_LINE_KEYS}
+    return [name for name in inspect.signature(HhP.__init__).parameters if name not in excluded]
+
+
+def validate_hyperparams(hyperparams: dict[str, Any], where: str) -> None:
+    """Refuse keys that neither HhP's constructor nor RL Zoo accepts, and settings HhP cannot run with.
+
+    :param hyperparams: one env's hyperparameters, after RL Zoo's overrides (``--hyperparams``)
+    :param where: where they came from, for the messages
+    """
+    from sb3_hhp.oracles.registry import ORACLE_NAMES
+
+    valid = hhp_arguments()
+    for key in hyperparams:
+        if key in COMMAND_LINE_KEYS:
+            raise ConfigError(f"{where}: {key!r} is set on the command line ({COMMAND_LINE_KEYS[key]}), not in the file")
+        if key not in ZOO_KEYS and key not in valid:
+            close = difflib.get_close_matches(str(key), [*valid, *ZOO_KEYS], n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ConfigError(
+                f"{where}: unknown hyperparameter {key!r}{hint}. Valid keys: HhP's arguments {', '.join(valid)}; "
+                f"RL Zoo's {', '.join(sorted(ZOO_KEYS))}"
+            )
+    if int(hyperparams.get("n_envs", 1)) != 1:
+        raise ConfigError(f"{where}: HhP trains on one env (its episodes are semi-MDP episodes): set n_envs: 1")
+    for key in ("normalize", "frame_stack", "vec_env_wrapper"):
+        if hyperparams.get(key):
+            raise ConfigError(
+                f"{where}: {key!r} wraps the VecEnv, and HhP needs the plain env: use env_wrapper (a gym.Wrapper) instead"
+            )
+    oracle = hyperparams.get("oracle", "scripted")
+    if isinstance(oracle, str) and oracle not in ORACLE_NAMES:
+        raise ConfigError(f"{where}: unknown oracle {oracle!r}: use one of {', '.join(ORACLE_NAMES)}")
+
+
+# ---------------------------------------------------------------------- RL Zoo registration
+
+
+def sample_hhp_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """RL Zoo sampler for ``-optimize``: query budget, query threshold, eq. 3's beta, eq. 6's alpha and the
+    meta-controller's learning rate.
+
+    :param trial: the optuna trial
+    :param n_actions: unused (RL Zoo's sampler signature)
+    :param n_envs: unused (HhP runs one env)
+    :param additional_args: unused (RL Zoo's sampler signature)
+    :return: HhP keyword arguments
+    """
+    hyperparams: dict[str, Any] = {
+        "query_budget": trial.suggest_int("query_budget", 25, 400, log=True),
+        "query_mode": trial.suggest_categorical("query_mode", ["adaptive", "fixed"]),
+        "beta": trial.suggest_float("beta", 0.0, 1.0),
+        "alpha": trial.suggest_float("alpha", 0.01, 2.0, log=True),
+        "learning_rate": trial.suggest_float("learning_rate", 1e-5, 3e-3, log=True),
+    }
+    if hyperparams["query_mode"] == "fixed":  # the adaptive mode sets its own threshold
+        hyperparams["t_qry"] = trial.suggest_float("t_qry", 0.02, 0.5)
+    return hyperparams
+
+
+def convert_hhp_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
+    """RL Zoo converter (``--storage ... --trial-id``): sampled values are HhP's arguments already."""
+    return dict(sampled_params)
+
+
+def register() -> None:
+    """Make HhP known to RL Zoo: ``ALGOS["hhp"]``, its optuna sampler and converter."""
+    from rl_zoo3 import hyperparams_opt, utils
+
+    from sb3_hhp.hhp import HhP
+
+    utils.ALGOS[ALGO_NAME] = HhP
+    hyperparams_opt.HYPERPARAMS_SAMPLER[ALGO_NAME] = sample_hhp_params
+    hyperparams_opt.HYPERPARAMS_CONVERTER[ALGO_NAME] = convert_hhp_params
+
+
+# ---------------------------------------------------------------------- callbacks and experiment manager
+
+
+def every_primitive_steps(callback: BaseCallback, n_steps: int) -> BaseCallback:
+    """Run ``callback`` every ``n_steps`` primitive env steps instead of every ``n`` sub-goal choices.
+
+    :param callback: an ``EvalCallback`` or ``CheckpointCallback`` (its own frequency is set to 1)
+    :param n_steps: primitive env steps between two runs (>= 1)
+    """
+    if isinstance(callback, EvalCallback):
+        callback.eval_freq = 1
+    elif isinstance(callback, CheckpointCallback):
+        callback.save_freq = 1
+    return EveryNTimesteps(max(int(n_steps), 1), callback)
+
+
+def _primitive_step_trial_eval_callback() -> type:
+    from rl_zoo3.callbacks import TrialEvalCallback
+
+    class PrimitiveStepTrialEvalCallback(TrialEvalCallback):
+        """RL Zoo's trial evaluation (``-optimize``), every ``eval_freq`` primitive env steps."""
+
+        def __init__(self, *args: Any, eval_freq: int = 10_000, **kwargs: Any) -> None:
+            super().__init__(*args, eval_freq=1, **kwargs)
+            self.primitive_eval_freq = max(int(eval_freq), 1)
+            self.last_eval_step = 0
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps - self.last_eval_step < self.primitive_eval_freq:
+                return True
+            self.last_eval_step = self.num_timesteps
+            return super()._on_step()
+
+    return PrimitiveStepTrialEvalCallback
+
+
+@contextlib.contextmanager
+def _replaced(module: Any, name: str, value: Any) -> Iterator[None]:
+    original = getattr(module, name)
+    setattr(module, name, value)
+    try:
+        yield
+    finally:
+        setattr(module, name, original)
+
+
+def _experiment_manager_class() -> type:
+    from rl_zoo3.exp_manager import ExperimentManager
+
+    class HhPExperimentManager(ExperimentManager):
+        """RL Zoo's experiment manager for HhP: domain entries, key checks, the oracle and preference
+        database, callbacks in primitive steps, the labeling server; it keeps the trained model."""
+
+        def __init__(self, *args: Any, hhp_options: argparse.Namespace, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            self.hhp_options = hhp_options
+            self.trained_model: Any = None
+            self.train_seconds = 0.0
+            self.label_server: Any = None
+            self.config_entry = ""
+
+        def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
+            if not self.config.endswith((".yml", ".yaml")):  # a .py file or a module: RL Zoo reads it
+                hyperparams, _ = super().read_hyperparameters()
+                self.config_entry = self.env_name.gym_id
+            else:
+                print(f"Loading hyperparameters from: {self.config}")
+                try:
+                    with open(self.config) as file:
+                        table = yaml.safe_load(file)
+                except OSError as error:
+                    raise ConfigError(f"Cannot read the hyperparameter file {self.config}: {error}") from error
+                self.config_entry = select_entry(table, self.env_name.gym_id, self.config)
+                if self.config_entry != self.env_name.gym_id:
+                    print(f"Using the {self.config_entry!r} entry for {self.env_name.gym_id}")
+                hyperparams = dict(table[self.config_entry] or {})
+                # as RL Zoo's own read_hyperparameters from here on
+                if self.storage and self.study_name and self.trial_id:
+                    print("Loading from Optuna study...")
+                    hyperparams.update(self.load_trial(self.storage, self.study_name, self.trial_id))
+                if self.custom_hyperparams is not None:
+                    hyperparams.update(self.custom_hyperparams)
+                if "env_kwargs" in hyperparams and self.env_kwargs:
+                    hyperparams.update({"env_kwargs": self.env_kwargs})
+                    if self._eval_env_kwargs_args is None:
+                        self.eval_env_kwargs = hyperparams["env_kwargs"]
+            options = self.hhp_options
+            if options.oracle is not None:
+                hyperparams["oracle"] = options.oracle
+            # every run keeps its answers in a durable store; optuna trials would share one, so they get none
+            if "preference_db" not in hyperparams and not (self.optimize_hyperparameters and not options.label_server):
+                hyperparams["preference_db"] = os.path.join(self.save_path, PREFERENCE_DB_NAME)
+            validate_hyperparams(hyperparams, f"{self.config} [{self.config_entry}]")
+            saved_hyperparams = OrderedDict([(key, hyperparams[key]) for key in sorted(hyperparams.keys())])
+            print("Default hyperparameters for environment (ones being tuned will be overridden):")
+            pprint(saved_hyperparams)
+            return hyperparams, saved_hyperparams
+
+        def create_callbacks(self) -> None:
+            super().create_callbacks()
+            from sb3_hhp.callbacks import PrimitiveStepProgressBar
+
+            for index, callback in enumerate(self.callbacks):
+                if type(callback) is ProgressBarCallback:
+                    self.callbacks[index] = PrimitiveStepProgressBar()
+                elif isinstance(callback, EvalCallback):
+                    self.callbacks[index] = every_primitive_steps(callback, callback.eval_freq)
+                elif isinstance(callback, CheckpointCallback):
+                    self.callbacks[index] = every_primitive_steps(callback, callback.save_freq)
+
+        def setup_experiment(self) -> Any:
+            try:
+                results = super().setup_experiment()
+            except ConfigError:
+                raise
+            except (ValueError, TypeError) as error:  # HhP's constructor refusing a value from the file
+                raise ConfigError(f"{self.config} [{self.config_entry}]: {error}") from error
+            if results is not None and self.hhp_options.label_server:
+                from sb3_hhp.label.server import LabelServer
+
+                model = results[0]
+                self.label_server = LabelServer(model.store, host="127.0.0.1", port=self.hhp_options.label_port).start()
+                print(f"Labeling page: {self.label_server.url} (answers go to {model.store.path})", flush=True)
+            return results
+
+        def learn(self, model: Any) -> None:
+            start = time.perf_counter()
+            super().learn(model)
+            self.train_seconds = time.perf_counter() - start
+
+        def save_trained_model(self, model: Any) -> None:
+            super().save_trained_model(model)
+            self.trained_model = model
+
+        def hyperparameters_optimization(self) -> None:
+            import rl_zoo3.exp_manager
+
+            with _replaced(rl_zoo3.exp_manager, "TrialEvalCallback", _primitive_step_trial_eval_callback()):
+                super().hyperparameters_optimization()
+
+    return HhPExperimentManager
+
+
+# ---------------------------------------------------------------------- evaluation and summary
+
+
+def eval_seeds(seed: int, n_episodes: int, offset: int = EVAL_SEED_OFFSET) -> list[int]:
+    """Seeds of the evaluation episodes: ``seed + offset``, ``seed + offset + 1``, ... (one per episode).
+
+    The training env is seeded with ``seed`` (RL Zoo seeds env ``i`` with ``seed + i``, and HhP runs one), so
+    with ``offset`` above the number of training envs no evaluation seed is a training seed.
+
+    :param seed: the training seed (>= 0)
+    :param n_episodes: number of evaluation episodes (>= 0)
+    :param offset: distance from the training seed (>= 1)
+    """
+    if n_episodes < 0:
+        raise ValueError(f"n_episodes must be >= 0, got {n_episodes}")
+    if offset < 1:
+        raise ValueError(f"offset must be >= 1 so that evaluation never reuses the training seed, got {offset}")
+    return [int(seed) + offset + index for index in range(n_episodes)]
+
+
+def evaluate(model: Any, make_envs: Any, seeds: Sequence[int]) -> dict[str, Any]:
+    """Run the deterministic policy for one episode per seed, each on a fresh env.
+
+    :param model: a trained HhP
+    :param make_envs: ``make_envs(n)`` builds a VecEnv of ``n`` fresh envs wrapped like the training env
+        (RL Zoo's ``ExperimentManager.create_envs(n, eval_env=True)``)
+    :param seeds: one seed per episode; a chunk of consecutive seeds goes to ``VecEnv.seed(first)``
+    :return: returns, lengths and successes (``is_success`` when the env reports it, else return > 0)
+    """
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    returns: list[float] = []
+    lengths: list[int] = []
+    successes: list[bool] = []
+    seeds = [int(seed) for seed in seeds]
+    for start in range(0, len(seeds), EVAL_CHUNK):
+        chunk = seeds[start : start + EVAL_CHUNK]
+        if chunk != list(range(chunk[0], chunk[0] + len(chunk))):
+            raise ValueError("evaluate needs consecutive seeds (VecEnv.seed(s) seeds env i with s + i)")
+        env = make_envs(len(chunk))
+        reported: dict[int, bool] = {}
+
+        def record(locals_: dict[str, Any], _globals: dict[str, Any]) -> None:
+            if locals_["done"] and "is_success" in locals_["info"]:
+                reported[int(locals_["i"])] = bool(locals_["info"]["is_success"])
+
+        env.seed(chunk[0])
+        try:
+            episode_returns, episode_lengths = evaluate_policy(
+                model, env, n_eval_episodes=len(chunk), deterministic=True, return_episode_rewards=True, callback=record,
+                warn=False,
+            )
+        finally:
+            env.close()
+        returns += [float(value) for value in episode_returns]
+        lengths += [int(value) for value in episode_lengths]
+        successes += [reported.get(index, value > 0) for index, value in enumerate(episode_returns)]
+    return {"returns": returns, "lengths": lengths, "successes": successes}
+
+
+def summarize(
+    model: Any, env_id: str, seed: int, seeds: Sequence[int], results: dict[str, Any], train_seconds: float
+) -> dict[str, Any]:
+    """The run's summary: evaluation, queries, sub-goals and training speed.
+
+    :param model: the trained HhP
+    :param env_id: the task
+    :param seed: the training seed
+    :param seeds: the evaluation seeds
+    :param results: :func:`evaluate`'s output
+    :param train_seconds: wall-clock seconds of ``learn`` (callbacks included)
+    """
+    returns = np.asarray(results["returns"], dtype=float)
+    subgoals = [model.goal_space.describe(goal.key) for goal in model.subgoals]
+    return {
+        "env": env_id,
+        "seed": int(seed),
+        "oracle": model.oracle_spec if isinstance(model.oracle_spec, str) or model.oracle_spec is None else type(model.oracle_spec).__name__,
+        "total_timesteps": int(model.num_timesteps),
+        "train_seconds": round(float(train_seconds), 3),
+        "fps": round(model.num_timesteps / train_seconds, 1) if train_seconds > 0 else None,
+        "eval_episodes": len(returns),
+        "eval_seeds": [int(value) for value in seeds],
+        "success_rate": float(np.mean(results["successes"])) if len(returns) else None,
+        "mean_return": float(returns.mean()) if len(returns) else None,
+        "std_return": float(returns.std()) if len(returns) else None,
+        "mean_episode_length": float(np.mean(results["lengths"])) if len(returns) else None,
+        "queries_used": int(model.query_selector.used),
+        "query_budget": int(model.query_selector.budget),
+        "num_subgoals": len(subgoals),
+        "subgoals": subgoals,
+        "preference_db": model.preference_db,
+    }
+
+
+# ---------------------------------------------------------------------- command line
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m sb3_hhp.train",
+        description=__doc__.split("\n", 1)[0],
+        add_help=False,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=(
+            "Every other option is RL Zoo's (listed below) and passed through; --algo is hhp and --conf-file\n"
+            "defaults to hyperparams/hhp.yml. Frequencies (--eval-freq, --save-freq, -n, -optimize's evaluations)\n"
+            "count primitive env steps, not sub-goal choices (SB3 calls callbacks once per sub-goal choice;\n"
+            "here they are triggered by model.num_timesteps). The preference database is\n"
+            "<log folder>/hhp/<ENV>_<run>/preferences.sqlite unless the file sets preference_db."
+        ),
+    )
+    parser.add_argument("-h", "--help", action="store_true", help="show this help (and RL Zoo's options) and exit")
+    parser.add_argument("--oracle", default=None, help="who answers preference queries (default: the file's, else scripted; web with --label-server)")
+    parser.add_argument("--summary-json", default=None, help="write the run's summary (evaluation, queries, sub-goals, fps) to this file")
+    parser.add_argument("--eval-episodes", type=int, default=100, help="episodes of the final deterministic evaluation, seeds from seed + 10000 (default 100)")
+    parser.add_argument("--periodic-eval-episodes", type=int, default=5, help="episodes of each periodic evaluation (RL Zoo's --eval-episodes, default 5)")
+    parser.add_argument("--label-server", action="store_true", help="serve the labeling page beside training (implies --oracle web)")
+    parser.add_argument("--label-port", type=int, default=8000, help="port of the labeling page on 127.0.0.1 (default 8000, 0 picks a free one)")
+    return parser
+
+
+def _zoo_peek(argv: Sequence[str]) -> argparse.Namespace:
+    """The few RL Zoo options this entry point reads (they stay in the command line)."""
+    peek = argparse.ArgumentParser(add_help=False)
+    peek.add_argument("--algo", default=ALGO_NAME)
+    peek.add_argument("--env", default=None)
+    peek.add_argument("-conf", "--conf-file", default=None)
+    peek.add_argument("--gym-packages", nargs="+", default=[])
+    peek.add_argument("-optimize", "--optimize-hyperparameters", action="store_true")
+    return peek.parse_known_args(list(argv))[0]
+
+
+def check_env_id(env_id: Optional[str], gym_packages: Sequence[str] = ()) -> str:
+    """Fail early, in one line, on a missing or unknown env id (suggesting the closest registered one).
+
+    :param env_id: the ``--env`` value
+    :param gym_packages: modules that register envs (``--gym-packages``)
+    """
+    import gymnasium as gym
+
+    import rl_zoo3.import_envs  # noqa: F401  registers MiniGrid, ALE, ...
+
+    if not env_id:
+        raise ConfigError("--env ENV is required (e.g. --env MiniGrid-DoorKey-5x5-v0)")
+    for module in gym_packages:
+        try:
+            importlib.import_module(module)
+        except ImportError as error:
+            raise ConfigError(f"--gym-packages: cannot import {module!r}: {error}") from error
+    if env_id not in gym.envs.registry:
+        close = difflib.get_close_matches(env_id, list(gym.envs.registry), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ConfigError(f"Unknown env id {env_id!r}{hint}: not in the gymnasium registry")
+    return env_id
+
+
+def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
+    """Parse the command line, train with RL Zoo, evaluate and summarize.
+
+    :param argv: the arguments (default ``sys.argv[1:]``)
+    :return: the summary, or None when nothing was trained (``-optimize``)
+    """
+    import rl_zoo3.train
+
+    from sb3_hhp.oracles.registry import ORACLE_NAMES
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    options, zoo_argv = _parser().parse_known_args(argv)
+    if options.help:
+        _parser().print_help()
+        print("\nRL Zoo options (passed through to rl_zoo3.train):")
+        with _replaced(sys, "argv", ["python -m sb3_hhp.train", "--help"]):
+            register()
+            rl_zoo3.train.train()  # prints RL Zoo's help and exits
+        return None
+    if options.label_server and options.oracle is None:
+        options.oracle = "web"
+    if options.oracle is not None and options.oracle not in ORACLE_NAMES:
+        raise ConfigError(f"Unknown oracle {options.oracle!r}: use one of {', '.join(ORACLE_NAMES)}")
+    if options.eval_episodes < 0:
+        raise ConfigError(f"--eval-episodes must be >= 0, got {options.eval_episodes}")
+    if not 0 <= options.label_port <= 65535:
+        raise ConfigError(f"--label-port must be in [0, 65535], got {options.label_port}")
+    zoo = _zoo_peek(zoo_argv)
+    if zoo.algo != ALGO_NAME:
+        raise ConfigError(f"sb3_hhp.train trains HhP (--algo hhp); use python -m rl_zoo3.train for {zoo.algo!r}")
+    env_id = check_env_id(zoo.env, zoo.gym_packages)
+    if zoo.conf_file is None:
+        zoo_argv += ["--conf-file", str(default_config_path())]
+    elif zoo.conf_file.endswith((".yml", ".yaml", ".py")) and not os.path.isfile(zoo.conf_file):
+        raise ConfigError(f"--conf-file {zoo.conf_file}: no such file")
+    zoo_argv = ["--algo", ALGO_NAME, *zoo_argv, "--eval-episodes", str(options.periodic_eval_episodes)]
+
+    register()
+    managers: list[Any] = []
+    manager_class = _experiment_manager_class()
+
+    def make_manager(*args: Any, **kwargs: Any) -> Any:
+        managers.append(manager_class(*args, hhp_options=options, **kwargs))
+        return managers[-1]
+
+    try:
+        with _replaced(sys, "argv", ["python -m sb3_hhp.train", *zoo_argv]), _replaced(
+            rl_zoo3.train, "ExperimentManager", make_manager
+        ):
+            rl_zoo3.train.train()
+    finally:
+        for manager in managers:
+            if manager.label_server is not None:
+                manager.label_server.stop()
+    manager = managers[-1] if managers else None
+    if manager is None or manager.trained_model is None:
+        return None
+    model = manager.trained_model
+    seeds = eval_seeds(manager.seed, options.eval_episodes)
+    results = evaluate(model, lambda n: manager.create_envs(n, eval_env=True, no_log=True), seeds)
+    summary = summarize(model, env_id, manager.seed, seeds, results, manager.train_seconds)
+    summary["log_path"] = manager.save_path
+    summary["model_path"] = os.path.join(manager.save_path, f"{manager.env_name}.zip")
+    summary["config"] = manager.config
+    summary["config_entry"] = manager.config_entry
+    shown = {key: value for key, value in summary.items() if key != "eval_seeds"}
+    print("HhP summary: " + json.dumps(shown, indent=2))
+    if options.summary_json:
+        path = Path(options.summary_json)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(summary, indent=2) + "\n")
+        print(f"Summary written to {path}")
+    if model.store is not None:
+        model.store.close()
+    return summary
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Command-line entry point: exit status 0 on success, 2 (one line on stderr) on a configuration error."""
+    try:
+        run(argv)
+    except ConfigError as error:
+        print(f"python -m sb3_hhp.train: error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
