@@ -20,10 +20,15 @@ count choices. Here they are triggered by ``model.num_timesteps`` instead, which
 like ``-n``: ``--eval-freq 10000`` evaluates every 10,000 primitive steps (SB3's
 :class:`~stable_baselines3.common.callbacks.EveryNTimesteps` wraps them).
 
-After training, the deterministic policy is evaluated on fresh environments (built like the training
-env, by RL Zoo) whose seeds start at ``seed + 10_000`` (:func:`eval_seeds`), never a training seed; the
-summary (success rate, mean return, queries used, sub-goals found, fps) is printed and, with
-``--summary-json``, written as JSON.
+After training, the deterministic policy (with ``--stochastic-eval``, the stochastic one) is evaluated
+on fresh environments (built like the training env, by RL Zoo) whose seeds start at ``seed + 10_000``
+(:func:`eval_seeds`), never a training seed. The summary (success rate, mean return, queries used,
+sub-goals found, fps) is printed and, with ``--summary-json``, written as JSON. The trained model is
+the one RL Zoo just saved to ``<log folder>/hhp/<ENV>_<run>/<ENV>.zip``, taken from the experiment
+manager in memory.
+
+``--label-server`` serves the labeling page (:class:`~sb3_hhp.label.server.LabelServer`) on 127.0.0.1
+beside training, on the run's preference database, and implies ``--oracle web``.
 """
 
 import argparse
@@ -43,7 +48,13 @@ from typing import Any, Optional
 
 import numpy as np
 import yaml
-from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback, EvalCallback, EveryNTimesteps, ProgressBarCallback
+from stable_baselines3.common.callbacks import (
+    BaseCallback,
+    CheckpointCallback,
+    EvalCallback,
+    EveryNTimesteps,
+    ProgressBarCallback,
+)
 
 #: the algorithm's name in RL Zoo (``--algo hhp``, ``<log folder>/hhp/``)
 ALGO_NAME = "hhp"
@@ -372,13 +383,14 @@ def eval_seeds(seed: int, n_episodes: int, offset: int = EVAL_SEED_OFFSET) -> li
     return [int(seed) + offset + index for index in range(n_episodes)]
 
 
-def evaluate(model: Any, make_envs: Any, seeds: Sequence[int]) -> dict[str, Any]:
-    """Run the deterministic policy for one episode per seed, each on a fresh env.
+def evaluate(model: Any, make_envs: Any, seeds: Sequence[int], deterministic: bool = True) -> dict[str, Any]:
+    """Run the policy for one episode per seed, each on a fresh env.
 
     :param model: a trained HhP
     :param make_envs: ``make_envs(n)`` builds a VecEnv of ``n`` fresh envs wrapped like the training env
         (RL Zoo's ``ExperimentManager.create_envs(n, eval_env=True)``)
     :param seeds: one seed per episode; a chunk of consecutive seeds goes to ``VecEnv.seed(first)``
+    :param deterministic: greedy sub-goal choices and primitive actions (else sampled, as in training)
     :return: returns, lengths and successes (``is_success`` when the env reports it, else return > 0)
     """
     from stable_baselines3.common.evaluation import evaluate_policy
@@ -401,8 +413,8 @@ def evaluate(model: Any, make_envs: Any, seeds: Sequence[int]) -> dict[str, Any]
         env.seed(chunk[0])
         try:
             episode_returns, episode_lengths = evaluate_policy(
-                model, env, n_eval_episodes=len(chunk), deterministic=True, return_episode_rewards=True, callback=record,
-                warn=False,
+                model, env, n_eval_episodes=len(chunk), deterministic=deterministic, return_episode_rewards=True,
+                callback=record, warn=False,
             )
         finally:
             env.close()
@@ -426,10 +438,11 @@ def summarize(
     """
     returns = np.asarray(results["returns"], dtype=float)
     subgoals = [model.goal_space.describe(goal.key) for goal in model.subgoals]
+    oracle = model.oracle_spec
     return {
         "env": env_id,
         "seed": int(seed),
-        "oracle": model.oracle_spec if isinstance(model.oracle_spec, str) or model.oracle_spec is None else type(model.oracle_spec).__name__,
+        "oracle": oracle if isinstance(oracle, str) or oracle is None else type(oracle).__name__,
         "total_timesteps": int(model.num_timesteps),
         "train_seconds": round(float(train_seconds), 3),
         "fps": round(model.num_timesteps / train_seconds, 1) if train_seconds > 0 else None,
@@ -453,7 +466,7 @@ def summarize(
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m sb3_hhp.train",
-        description=__doc__.split("\n", 1)[0],
+        description="Train HhP from a YAML file with RL Zoo, evaluate it on fresh seeds and summarize the run.",
         add_help=False,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=(
@@ -465,12 +478,32 @@ def _parser() -> argparse.ArgumentParser:
         ),
     )
     parser.add_argument("-h", "--help", action="store_true", help="show this help (and RL Zoo's options) and exit")
-    parser.add_argument("--oracle", default=None, help="who answers preference queries (default: the file's, else scripted; web with --label-server)")
-    parser.add_argument("--summary-json", default=None, help="write the run's summary (evaluation, queries, sub-goals, fps) to this file")
-    parser.add_argument("--eval-episodes", type=int, default=100, help="episodes of the final deterministic evaluation, seeds from seed + 10000 (default 100)")
-    parser.add_argument("--periodic-eval-episodes", type=int, default=5, help="episodes of each periodic evaluation (RL Zoo's --eval-episodes, default 5)")
-    parser.add_argument("--label-server", action="store_true", help="serve the labeling page beside training (implies --oracle web)")
-    parser.add_argument("--label-port", type=int, default=8000, help="port of the labeling page on 127.0.0.1 (default 8000, 0 picks a free one)")
+    parser.add_argument(
+        "--oracle", default=None,
+        help="who answers preference queries (default: the file's, else scripted; web with --label-server)",
+    )
+    parser.add_argument(
+        "--summary-json", default=None, help="write the run's summary (evaluation, queries, sub-goals, fps) to this file"
+    )
+    parser.add_argument(
+        "--eval-episodes", type=int, default=100,
+        help="episodes of the final evaluation, one fresh env each, seeds from seed + 10000 (default 100)",
+    )
+    parser.add_argument(
+        "--stochastic-eval", action="store_true",
+        help="evaluate the stochastic policy at the end (as RL Zoo does for MiniGrid, where greedy policies can loop)",
+    )
+    parser.add_argument(
+        "--periodic-eval-episodes", type=int, default=5,
+        help="episodes of each periodic evaluation (RL Zoo's --eval-episodes, default 5)",
+    )
+    parser.add_argument(
+        "--label-server", action="store_true", help="serve the labeling page beside training (implies --oracle web)"
+    )
+    parser.add_argument(
+        "--label-port", type=int, default=8000,
+        help="port of the labeling page on 127.0.0.1 (default 8000, 0 picks a free one)",
+    )
     return parser
 
 
@@ -568,8 +601,10 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
         return None
     model = manager.trained_model
     seeds = eval_seeds(manager.seed, options.eval_episodes)
-    results = evaluate(model, lambda n: manager.create_envs(n, eval_env=True, no_log=True), seeds)
+    deterministic = not options.stochastic_eval
+    results = evaluate(model, lambda n: manager.create_envs(n, eval_env=True, no_log=True), seeds, deterministic)
     summary = summarize(model, env_id, manager.seed, seeds, results, manager.train_seconds)
+    summary["deterministic_eval"] = deterministic
     summary["log_path"] = manager.save_path
     summary["model_path"] = os.path.join(manager.save_path, f"{manager.env_name}.zip")
     summary["config"] = manager.config
