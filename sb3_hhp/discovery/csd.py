@@ -5,7 +5,9 @@ RND memory Omega). States in the lowest ``percentile`` percent of rho (where nov
 the agent has been learning about them) that were visited at least ``min_visits`` times over all
 training and whose similarity to every stored sub-goal is below ``similarity_threshold``
 (b_similarity) become new sub-goals. ``strategy="random"`` is the paper's ablation (Table 1): a
-random visited state passes the same visit and similarity gates.
+random visited state passes the same visit and similarity gates. A state where the task was solved
+(:data:`~sb3_hhp.goals.base.SUCCESS_KEY`) is always a candidate: the task's own goal needs no
+curiosity to be worth pursuing.
 """
 
 from collections import Counter
@@ -14,7 +16,7 @@ from typing import Optional
 
 import numpy as np
 
-from sb3_hhp.goals.base import GoalSpace
+from sb3_hhp.goals.base import SUCCESS_KEY, GoalSpace
 
 
 class SubgoalDiscovery:
@@ -85,6 +87,9 @@ class SubgoalDiscovery:
             order = np.lexsort((self.rng.random(n), rho))
             n_candidates = max(1, int(np.ceil(n * self.percentile / 100.0)))
             candidates = order[:n_candidates]
+            # the task solved is the one situation that needs no curiosity to be worth a sub-goal
+            solved = [index for index in order[n_candidates:] if keys[index] == SUCCESS_KEY]
+            candidates = np.concatenate([solved[:1], candidates]).astype(np.int64)
         else:
             candidates = self.rng.permutation(n)
         chosen: list[int] = []

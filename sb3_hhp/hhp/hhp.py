@@ -41,7 +41,7 @@ from sb3_hhp.preferences.store import PreferenceStore
 SelfHhP = TypeVar("SelfHhP", bound="HhP")
 
 #: the zip member of a saved model that holds the components beyond the meta-controller
-COMPONENTS_FILE = "hhp_components.pth"
+COMPONENTS_FILE = "hhp_components.pt"  # not .pth: SB3 loads every .pth member as weights only
 
 
 def _single_env(env: Union[GymEnv, str, None]) -> Optional[gym.Env]:
@@ -97,6 +97,8 @@ class HhP(DoubleDQN):
     :param preference_db: path of the SQLite preference store (None: in memory)
     :param oracle_kwargs: arguments of the oracle built from a name
     :param n_opt: meta-controller gradient steps after each episode (N_opt = 4)
+    :param share_experience: every transition also trains (off-policy) the other subpolicies, relabelled with their rewards
+    :param center_bonus: centre the preference bonus over the sub-goals of each state (see the README's Design)
     :param record_images: render states for people (default: only when the oracle is a person)
     Other parameters are those of :class:`~sb3_hhp.dqn.DoubleDQN` (the meta-controller); the meta
     replay buffer R_H holds ``buffer_size`` sub-goal choices, and ``target_update_interval`` counts them.
@@ -115,7 +117,7 @@ class HhP(DoubleDQN):
         oracle: Union[str, Oracle, None] = "scripted",
         query_budget: int = 200,
         t_qry: float = 0.26,
-        query_mode: str = "fixed",
+        query_mode: str = "adaptive",
         beta: float = 0.7,
         alpha: float = 0.5,
         use_preferences: bool = True,
@@ -123,7 +125,7 @@ class HhP(DoubleDQN):
         discovery: str = "csd",
         subgoals: Optional[list[np.ndarray]] = None,
         goal_space: Union[str, GoalSpace] = "auto",
-        max_subgoal_steps: int = 100,
+        max_subgoal_steps: int = 50,
         subgoal_capacity: int = 16,
         b_similarity: float = 0.5,
         csd_percentile: float = 5.0,
@@ -135,10 +137,12 @@ class HhP(DoubleDQN):
         predictor_kwargs: Optional[dict[str, Any]] = None,
         rnd_kwargs: Optional[dict[str, Any]] = None,
         subpolicy_kwargs: Optional[dict[str, Any]] = None,
-        subpolicy_exploration_steps: int = 20_000,
+        subpolicy_exploration_steps: int = 5_000,
         preference_db: Optional[str] = None,
         oracle_kwargs: Optional[dict[str, Any]] = None,
         n_opt: int = 4,
+        share_experience: bool = True,
+        center_bonus: bool = True,
         record_images: Optional[bool] = None,
         learning_rate: Union[float, Schedule] = 1e-3,
         buffer_size: int = 500_000,
@@ -147,7 +151,7 @@ class HhP(DoubleDQN):
         tau: float = 1.0,
         gamma: float = 0.99,
         target_update_interval: int = 500,
-        exploration_fraction: float = 0.5,
+        exploration_fraction: float = 0.2,
         exploration_initial_eps: float = 1.0,
         exploration_final_eps: float = 0.05,
         max_grad_norm: float = 10,
@@ -202,6 +206,8 @@ class HhP(DoubleDQN):
         self.preference_db = preference_db
         self.oracle_kwargs = dict(oracle_kwargs or {})
         self.n_opt = n_opt
+        self.center_bonus = center_bonus
+        self.share_experience = share_experience
         self.record_images = record_images
         self.subpolicy_policy = policy if isinstance(policy, str) else "MlpPolicy"
 
@@ -283,6 +289,7 @@ class HhP(DoubleDQN):
         hierarchy.subpolicies = self.subpolicies
         hierarchy.rnd = self.rnd
         hierarchy.record_images = bool(self.record_images)
+        hierarchy.share_experience = self.share_experience
         if hierarchy.n_subgoals == 0 and not hierarchy.subgoals:
             for goal_obs in self.initial_subgoals:
                 self.add_subgoal(self.goal_space.key(goal_obs), goal_obs, None, source="user")
@@ -327,6 +334,12 @@ class HhP(DoubleDQN):
     def goal_obs(self) -> np.ndarray:
         return np.stack([goal.obs for goal in self.subgoals])
 
+    def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+        """N_opt meta-controller updates (Algorithm 1 lines 30-34), once the meta buffer holds a batch."""
+        if self.replay_buffer is None or self.replay_buffer.size() < batch_size:
+            return
+        super().train(gradient_steps, batch_size)
+
     # ------------------------------------------------------------------ rewards (eq. 3)
     def _rewards(self, replay_data: Any) -> th.Tensor:
         """r^e = beta * R_e + (1 - beta) * b / sigma(R_p) (eq. 3, Algorithm 1 lines 32-33), with the bonus
@@ -336,9 +349,21 @@ class HhP(DoubleDQN):
             return extrinsic
         goals = replay_data.actions.long().flatten().cpu().numpy()
         states = replay_data.observations.cpu().numpy().astype(self.primitive_observation_space.dtype)
-        bonus = self.predictor.score(states, self.goal_obs[goals])
+        bonus = self.preference_bonus(states, goals)
         bonus_t = th.as_tensor(bonus, dtype=extrinsic.dtype, device=extrinsic.device).reshape(-1, 1)
         return meta_reward(extrinsic, bonus_t, sigma=self.return_normalizer.sigma, beta=self.beta)
+
+    def preference_bonus(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
+        """The preference bonus b = p_hat(s, g) (Algorithm 1 line 12), centred over the sub-goals when
+        ``center_bonus``: b(s, g) - mean_g' p_hat(s, g'). Bradley-Terry (eq. 2) fixes scores only up to a
+        per-state constant, so the uncentred level is arbitrary shaping that can pay for dawdling."""
+        goal_obs = self.goal_obs
+        if not self.center_bonus:
+            return self.predictor.score(states, goal_obs[goals])
+        n_goals, n_states = len(goal_obs), len(states)
+        scores = self.predictor.score(np.repeat(states, n_goals, axis=0), goal_obs[np.tile(np.arange(n_goals), n_states)])
+        scores = scores.reshape(n_states, n_goals)
+        return scores[np.arange(n_states), goals] - scores.mean(axis=1)
 
     # ------------------------------------------------------------------ acting
     def _sample_action(self, learning_starts: int, action_noise: Any = None, n_envs: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -381,7 +406,7 @@ class HhP(DoubleDQN):
                 goal = int(actions[0])
                 self.recent_choices.append(goal)
                 if self.use_preferences and len(self.predictor) > 0:  # line 12: b_t, for sigma(R_p)
-                    bonus = self.predictor.score(observations, self.goal_obs[[goal]])
+                    bonus = self.preference_bonus(observations, np.asarray([goal]))
                     self.return_normalizer.update(bonus)
                 self._store_transition(replay_buffer, buffer_actions, new_obs, rewards, dones, infos)
             self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)

@@ -65,6 +65,8 @@ class HierarchicalEnv(gym.Env):
     :param max_subgoal_steps: primitive steps after which a sub-goal gives up
     :param capacity: initial size of the action space (grows by doubling)
     :param record_images: render s_t at each choice (needed by people and the gallery)
+    :param share_experience: also store every transition in the other subpolicies' buffers with their
+        own rewards (intra-option learning; the active subpolicy alone trains on the step)
     """
 
     metadata = {"render_modes": []}
@@ -79,6 +81,7 @@ class HierarchicalEnv(gym.Env):
         max_subgoal_steps: int = 100,
         capacity: int = 16,
         record_images: bool = False,
+        share_experience: bool = True,
     ) -> None:
         if max_subgoal_steps < 1:
             raise ValueError(f"max_subgoal_steps must be >= 1, got {max_subgoal_steps}")
@@ -93,6 +96,7 @@ class HierarchicalEnv(gym.Env):
         self.alpha = alpha
         self.max_subgoal_steps = max_subgoal_steps
         self.record_images = record_images
+        self.share_experience = share_experience
         self.observation_space = env.observation_space
         self.action_space = spaces.Discrete(capacity)
         self.subgoals: list[Subgoal] = []
@@ -158,6 +162,8 @@ class HierarchicalEnv(gym.Env):
             intrinsic = float(self.rnd.intrinsic_reward(next_obs[None])[0]) if self.rnd is not None else 0.0  # eq. 7
             r_t = subpolicy_reward(pseudo_reward(achieved, terminal), intrinsic, self.alpha)  # eq. 5, 6 (lines 17-18)
             subpolicy.observe(obs, next_obs, action_t, r_t, terminal)  # lines 19-20
+            if self.share_experience:
+                self._relabel(goal_id, obs, next_obs, action_t, key, intrinsic, terminated)
             self.visits[key] += 1
             trace.low_obs.append(next_obs)
             trace.low_keys.append(key)
@@ -176,6 +182,18 @@ class HierarchicalEnv(gym.Env):
         if terminated or truncated:
             info["is_success"] = bool(terminated and extrinsic_return > 0)
         return obs, extrinsic_return, terminated, truncated, info
+
+    def _relabel(self, active: int, obs: np.ndarray, next_obs: np.ndarray, action: Any, key: Hashable,
+                 intrinsic: float, terminated: bool) -> None:
+        """Intra-option learning: the transition is experience for every other sub-goal too, with that
+        sub-goal's own pseudo-reward (eq. 5) and the same curiosity bonus (eq. 6); only the active
+        subpolicy takes a gradient step."""
+        for goal_id, (goal, other) in enumerate(zip(self.subgoals, self.subpolicies.policies)):
+            if goal_id == active:
+                continue
+            done = self.goal_space.achieved(key, goal.key)
+            terminal = done or terminated
+            other.store(obs, next_obs, action, subpolicy_reward(pseudo_reward(done, terminal), intrinsic, self.alpha), terminal)
 
     def _explore_randomly(self) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Before the first sub-goal exists: one random-action episode whose states seed G (Algorithm 1 line 5)."""

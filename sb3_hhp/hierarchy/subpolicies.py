@@ -16,7 +16,7 @@ from stable_baselines3 import DDPG
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.utils import get_linear_fn
+from stable_baselines3.common.utils import LinearSchedule
 
 from sb3_hhp.dqn.dqn import DoubleDQN
 
@@ -39,10 +39,12 @@ def default_subpolicy_kwargs(action_space: spaces.Space) -> dict[str, Any]:
     """The paper's defaults (section 5.1): Adam lr 1e-3, batch 128, buffers of 50K, targets every 2,000 steps."""
     kwargs: dict[str, Any] = dict(
         learning_rate=1e-3, buffer_size=50_000, learning_starts=500, batch_size=128, gamma=0.99,
-        policy_kwargs=dict(net_arch=[256, 256]),
+        # fused Adam: one kernel per update instead of one per tensor, ~1 ms less per update on a CPU
+        policy_kwargs=dict(net_arch=[256, 256], optimizer_kwargs=dict(fused=True)),
     )
     if isinstance(action_space, spaces.Discrete):
-        kwargs.update(target_update_interval=2_000, exploration_fraction=1.0,
+        # a subpolicy lives a few thousand of its own steps: its target net follows every 250 (2,000 in the paper)
+        kwargs.update(target_update_interval=250, exploration_fraction=1.0,
                       exploration_initial_eps=1.0, exploration_final_eps=0.05)
     return kwargs
 
@@ -65,8 +67,8 @@ class Subpolicy:
         self.recent: list[bool] = []
         self._discrete = isinstance(model.action_space, spaces.Discrete)
         if self._discrete:
-            model.exploration_schedule = get_linear_fn(
-                model.exploration_initial_eps, model.exploration_final_eps, 1.0  # type: ignore[attr-defined]
+            model.exploration_schedule = LinearSchedule(
+                model.exploration_initial_eps, model.exploration_final_eps, end_fraction=1.0  # type: ignore[attr-defined]
             )
 
     @property
@@ -87,20 +89,24 @@ class Subpolicy:
             action = np.clip(action + model.action_noise(), model.action_space.low, model.action_space.high)
         return action
 
-    def observe(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: float, done: bool) -> None:
-        """Store one transition (Algorithm 1 line 19) and take a gradient step (line 20)."""
+    def store(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: float, done: bool) -> None:
+        """Add one transition to this subpolicy's buffer D_g (Algorithm 1 line 19), without training."""
         model = self.model
-        buffer_action = action
-        if not self._discrete:
-            buffer_action = model.policy.scale_action(action)
+        buffer_action = action if self._discrete else model.policy.scale_action(action)
         model.replay_buffer.add(  # type: ignore[union-attr]
             obs[None], next_obs[None], np.asarray([buffer_action]), np.asarray([reward], np.float32),
             np.asarray([done]), [{}],
         )
+
+    def observe(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: float, done: bool) -> None:
+        """Store one transition of its own (Algorithm 1 line 19) and take a gradient step (line 20)."""
+        model = self.model
+        self.store(obs, next_obs, action, reward, done)
         self.num_steps += 1
         model.num_timesteps = self.num_steps
         model._current_progress_remaining = max(0.0, 1.0 - self.num_steps / self.exploration_steps)
-        if self.num_steps > model.learning_starts and self.num_steps % self.train_freq == 0:
+        ready = model.replay_buffer.size() >= max(model.learning_starts, model.batch_size)  # type: ignore[union-attr]
+        if ready and self.num_steps % self.train_freq == 0:
             model.train(gradient_steps=1, batch_size=model.batch_size)
         if self._discrete:
             model._on_step()  # target network every target_update_interval steps, epsilon schedule
@@ -136,7 +142,7 @@ class SubpolicySet:
         action_space: spaces.Space,
         policy: str = "MlpPolicy",
         subpolicy_kwargs: Optional[dict[str, Any]] = None,
-        exploration_steps: int = 20_000,
+        exploration_steps: int = 5_000,
         logger: Optional[Logger] = None,
         device: str | th.device = "auto",
         seed: Optional[int] = None,
