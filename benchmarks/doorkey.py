@@ -34,11 +34,11 @@ def flat_env(env_id: str) -> gym.Env:
     return Monitor(ImgObsWrapper(FullyObsWrapper(gym.make(env_id))))
 
 
-def evaluate(model, env: gym.Env, episodes: int, hierarchical: bool) -> dict:
-    """Deterministic policy on seeds EVAL_SEED_OFFSET + i: success rate and mean return."""
+def evaluate(model, env: gym.Env, episodes: int, hierarchical: bool, offset: int = EVAL_SEED_OFFSET) -> dict:
+    """Deterministic policy on seeds offset + i: success rate and mean return."""
     returns, successes = [], []
     for episode in range(episodes):
-        obs, _ = env.reset(seed=EVAL_SEED_OFFSET + episode)
+        obs, _ = env.reset(seed=offset + episode)
         state, start, done, total = None, np.ones(1, dtype=bool), False, 0.0
         while not done:
             if hierarchical:
@@ -62,13 +62,22 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=500_000)
     parser.add_argument("--query-budget", type=int, default=100)
     parser.add_argument("--eval-episodes", type=int, default=100)
+    parser.add_argument("--eval-every", type=int, default=100_000, help="also evaluate every N steps (written as they come)")
+    parser.add_argument("--eval-seed-offset", type=int, default=EVAL_SEED_OFFSET,
+                        help="evaluation seeds start here (tuning runs use another range than the final runs)")
+    parser.add_argument("--hhp-kwargs", default="{}", help="JSON dict of HhP keyword arguments (variants)")
+    parser.add_argument("--tag", default="", help="name of the variant in the results")
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     th.set_num_threads(1)
+    out = pathlib.Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    result: dict = dict(algo=args.algo, tag=args.tag, env=args.env, seed=args.seed, eval_seed_offset=args.eval_seed_offset,
+                        hhp_kwargs=json.loads(args.hhp_kwargs), evaluations=[])
 
-    start = time.perf_counter()
     if args.algo == "hhp":
-        model = HhP("MlpPolicy", gym.make(args.env), oracle="scripted", query_budget=args.query_budget, seed=args.seed)
+        model = HhP("MlpPolicy", gym.make(args.env), oracle="scripted", query_budget=args.query_budget, seed=args.seed,
+                    **json.loads(args.hhp_kwargs))
         eval_env = wrap_env(gym.make(args.env))
     elif args.algo == "dqn":
         model = DQN("MlpPolicy", flat_env(args.env), seed=args.seed)
@@ -76,18 +85,25 @@ def main() -> None:
     else:
         model = PPO("MlpPolicy", flat_env(args.env), seed=args.seed)
         eval_env = flat_env(args.env)
-    model.learn(args.steps)
-    seconds = time.perf_counter() - start
-    result = dict(algo=args.algo, env=args.env, seed=args.seed, total_timesteps=int(model.num_timesteps),
-                  train_seconds=round(seconds, 1), fps=round(model.num_timesteps / seconds, 1))
-    result.update(evaluate(model, eval_env, args.eval_episodes, hierarchical=args.algo == "hhp"))
-    if args.algo == "hhp":
-        result.update(queries_used=model.query_selector.used, query_budget=model.query_budget,
-                      num_subgoals=len(model.subgoals),
-                      subgoals=[model.goal_space.describe(goal.key) for goal in model.subgoals])
-    out = pathlib.Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
+    hierarchical = args.algo == "hhp"
+    train_seconds = 0.0
+    while model.num_timesteps < args.steps:
+        chunk = min(args.eval_every, args.steps - model.num_timesteps)
+        begin = time.perf_counter()
+        model.learn(chunk, reset_num_timesteps=False)
+        train_seconds += time.perf_counter() - begin
+        result.update(total_timesteps=int(model.num_timesteps), train_seconds=round(train_seconds, 1),
+                      fps=round(model.num_timesteps / train_seconds, 1))
+        evaluation = evaluate(model, eval_env, args.eval_episodes, hierarchical, args.eval_seed_offset)
+        result["evaluations"].append(dict(timesteps=int(model.num_timesteps), **evaluation))
+        result.update(evaluation)
+        if hierarchical:
+            result.update(queries_used=model.query_selector.used, query_budget=model.query_budget,
+                          num_subgoals=len(model.subgoals),
+                          subgoals=[model.goal_space.describe(goal.key) for goal in model.subgoals],
+                          subgoal_success=[sub.success_rate for sub in model.subpolicies.policies])
+        out.write_text(json.dumps(result, indent=2))
+        print(json.dumps(result["evaluations"][-1]), flush=True)
     print(json.dumps(result, indent=2))
 
 
