@@ -19,14 +19,14 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_hhp import HhP
 from sb3_hhp.goals import MiniGridGoalSpace, wrap_env
+from sb3_hhp.hhp.hhp import COMPONENTS_FILE
 from sb3_hhp.oracles import Label
 
 th.set_num_threads(1)
 
 DOORKEY = "MiniGrid-DoorKey-5x5-v0"
 EMPTY = "MiniGrid-Empty-5x5-v0"
-#: tiny networks and buffers; the meta learning_starts lies beyond the first (random) episode of a
-#: 5x5 task (at most 250 primitive steps), see test_meta_learning_starts_within_the_first_episode
+#: tiny networks and buffers
 TINY: dict[str, Any] = dict(
     n_masks=20,
     buffer_size=2_000,
@@ -179,16 +179,27 @@ def test_learn_with_a_user_callback_and_progress_bar(capsys: pytest.CaptureFixtu
 
 
 def test_meta_reward_is_eq3_with_the_predictor_bonus(trained: HhP) -> None:
+    """r^e = beta * R_e + (1 - beta) * b / sigma(R_p) (eq. 3) on a sampled batch, with b = p_hat(s, g), centred
+    over the sub-goals of the state (b - mean_g' p_hat(s, g')) when ``center_bonus``."""
     assert len(trained.predictor) > 0
     replay = trained.replay_buffer.sample(16)
     goals = replay.actions.long().flatten().numpy()
     states = replay.observations.numpy().astype(np.uint8)
-    bonus = trained.predictor.score(states, trained.goal_obs[goals])
+    goal_obs = trained.goal_obs
+    # p_hat(s, g') for every sub-goal g', one state at a time
+    scores = np.stack([trained.predictor.score(state[None], goal_obs) for state in states])
+    chosen = scores[np.arange(len(goals)), goals]
     r_e = replay.rewards.numpy().flatten()
     beta, sigma = trained.beta, trained.return_normalizer.sigma
-    expected = beta * r_e + (1 - beta) * bonus / sigma  # eq. 3
-    np.testing.assert_allclose(trained._rewards(replay).numpy().flatten(), expected, rtol=1e-5, atol=1e-6)
-    assert not np.allclose(expected, r_e)  # the bonus really enters
+    assert sigma > 0
+    center = trained.center_bonus
+    try:
+        for trained.center_bonus, bonus in ((True, chosen - scores.mean(axis=1)), (False, chosen)):
+            expected = beta * r_e + (1 - beta) * bonus / sigma  # eq. 3
+            np.testing.assert_allclose(trained._rewards(replay).numpy().flatten(), expected, rtol=1e-4, atol=1e-5)
+            assert not np.allclose(expected, beta * r_e)  # the bonus really enters
+    finally:
+        trained.center_bonus = center
 
 
 # ---------------------------------------------------------------------------- save / load
@@ -336,7 +347,8 @@ def test_load_refuses_a_zip_whose_components_are_garbage(tmp_path, trained: HhP)
     trained.save(path)
     with zipfile.ZipFile(path) as archive:
         members = {name: archive.read(name) for name in archive.namelist()}
-    members["hhp_components.pth"] = b"\x80\x04 definitely not a torch file"
+    assert COMPONENTS_FILE in members
+    members[COMPONENTS_FILE] = b"\x80\x04 definitely not a torch file"
     with zipfile.ZipFile(path, "w") as archive:
         for name, data in members.items():
             archive.writestr(name, data)
@@ -426,7 +438,7 @@ def test_resume_with_a_preference_database(tmp_path, budget: int, first_steps: i
     loaded = HhP.load(tmp_path / "hhp", env=gym.make(DOORKEY), preference_db=db)
     assert loaded.store.count_asked() == used_before == loaded.query_selector.used
     asked_before = loaded.store.asked_ids()
-    loaded.learn(1_000, reset_num_timesteps=False)
+    loaded.learn(600, reset_num_timesteps=False)
     selector, store = loaded.query_selector, loaded.store
     assert selector.used <= budget
     assert store.count_asked() == selector.used  # every question asked is counted once, none asked twice
@@ -513,12 +525,10 @@ def test_same_seed_same_run() -> None:
     assert runs[0] == runs[1]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="HhP trains the meta-controller as soon as num_timesteps > learning_starts, even when the first "
-    "(random) episode stored no sub-goal choice: the replay buffer is empty",
-)
 def test_meta_learning_starts_within_the_first_episode() -> None:
+    """learning_starts (primitive steps) shorter than the first, random episode, whose steps fill no meta
+    buffer: the meta-controller must wait for a batch rather than sample an empty buffer."""
     model = make_model(DOORKEY, learning_starts=50)
     model.learn(600)
     assert model.num_timesteps >= 600
+    assert model.replay_buffer.size() > 0
