@@ -1,0 +1,87 @@
+"""Train HhP while a person answers its questions in a web browser.
+
+HhP queues each question (the current state and two sub-goal images) in a SQLite preference store;
+a labeling server, running in a background thread of this process, serves the store as a web page.
+Open the printed URL and click which sub-goal is better; training never waits for you, and every
+answer is kept in the store, so a later run (same ``--db``) learns from it and never asks again.
+
+    python examples/label_in_browser.py                          # a short run; open the URL it prints
+    python examples/label_in_browser.py --steps 50000 --keep-open  # keep serving after training
+
+The same page can also be served by another process: ``python -m sb3_hhp.label --db labels.sqlite``.
+"""
+
+import argparse
+import os
+import tempfile
+import time
+from collections import Counter
+
+import gymnasium as gym
+import minigrid  # noqa: F401  (registers the MiniGrid envs)
+import torch as th
+
+from sb3_hhp import HhP
+from sb3_hhp.label.server import LabelServer
+
+
+def parse_args() -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="MiniGrid-DoorKey-5x5-v0", help="a MiniGrid env id")
+    parser.add_argument("--steps", type=int, default=3_000, help="training length in primitive env steps")
+    parser.add_argument("--budget", type=int, default=30, help="questions a person may be asked over training")
+    parser.add_argument("--db", default=None, help="the preference store (SQLite file); default: a new temporary file")
+    parser.add_argument("--host", default="127.0.0.1", help="address of the page (anything but loopback needs --token)")
+    parser.add_argument("--port", type=int, default=0, help="TCP port of the page (0: a free one)")
+    parser.add_argument("--token", default=None, help="access token of the page (required beyond this machine)")
+    parser.add_argument("--reply-window", type=float, default=30.0,
+                        help="seconds per question before the page answers CAN'T TELL")
+    parser.add_argument("--wait", type=float, default=0.0, help="seconds to wait before training, to open the page")
+    parser.add_argument("--keep-open", action="store_true", help="keep serving after training until Ctrl-C")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    return parser.parse_args()
+
+
+def main() -> None:
+    args = parse_args()
+    th.set_num_threads(args.threads)
+    db = args.db or os.path.join(tempfile.mkdtemp(prefix="hhp_labels_"), "labels.sqlite")
+    model = HhP(
+        "MlpPolicy",
+        gym.make(args.env),
+        oracle="web",  # questions go to the store; answers come back from the page
+        preference_db=db,
+        query_budget=args.budget,
+        max_subgoal_steps=50,
+        learning_starts=500,
+        buffer_size=50_000,
+        n_masks=100,
+        subpolicy_kwargs=dict(learning_starts=100, buffer_size=20_000, batch_size=64),
+        subpolicy_exploration_steps=2_000,
+        seed=args.seed,
+    )
+    server = LabelServer(model.store, host=args.host, port=args.port, token=args.token, reply_window_s=args.reply_window)
+    with server:
+        print(f"label the questions at {server.url}")
+        print(f"preference store: {db}")
+        if args.wait > 0:
+            time.sleep(args.wait)
+        model.learn(args.steps)
+        asked = model.store.count_asked()
+        answers = Counter(answer.label.name for _, _, answer in model.store.answers_since(0))
+        print(f"{model.num_timesteps} primitive steps, {len(model.subgoals)} sub-goals")
+        print(f"questions asked: {asked} of {args.budget}; answered: {sum(answers.values())} {dict(answers)}")
+        print(f"labels the predictor learnt from: {len(model.predictor)}")
+        if args.keep_open:
+            print("still serving; press Ctrl-C to stop")
+            try:
+                while True:
+                    time.sleep(1.0)
+            except KeyboardInterrupt:
+                pass
+    model.store.close()
+
+
+if __name__ == "__main__":
+    main()
