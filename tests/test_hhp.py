@@ -2,7 +2,6 @@
 save/load, errors, the paper's ablations, resuming with a preference database, and a growing
 sub-goal set. Tiny settings throughout (5x5 MiniGrid, a few thousand primitive steps)."""
 
-import os
 import zipfile
 from collections import Counter
 from typing import Any
@@ -426,7 +425,8 @@ def test_resume_with_a_preference_database(tmp_path, budget: int, first_steps: i
     """Budget 10 is spent before the save (the resumed run must ask nothing more); budget 2000 is not
     (the resumed run asks more, counting what was asked before the save). t_qry = 0: every tuple qualifies."""
     db = str(tmp_path / "prefs.sqlite")
-    model = make_model(DOORKEY, preference_db=db, query_budget=budget, predictor_kwargs=dict(hidden_dim=64, buffer_size=budget + 100))
+    predictor_kwargs = dict(hidden_dim=64, buffer_size=budget + 100)  # room to see a label added twice
+    model = make_model(DOORKEY, preference_db=db, query_budget=budget, predictor_kwargs=predictor_kwargs)
     model.learn(first_steps)
     used_before = model.query_selector.used
     assert 0 < used_before <= budget
