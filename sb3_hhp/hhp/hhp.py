@@ -9,6 +9,7 @@ confident choices (lines 24-27), discover sub-goals (line 29) and update the cur
 """
 
 import io
+import pickle
 import zipfile
 from collections import Counter, deque
 from typing import Any, ClassVar, Optional, TypeVar, Union
@@ -635,7 +636,12 @@ class HhP(DoubleDQN):
             with zipfile.ZipFile(file) as archive:
                 if COMPONENTS_FILE not in archive.namelist():
                     raise ValueError(f"{path} is not an HhP model: it has no {COMPONENTS_FILE} (was it saved by HhP.save?)")
-                components = th.load(io.BytesIO(archive.read(COMPONENTS_FILE)), map_location="cpu", weights_only=False)
+                try:
+                    components = th.load(io.BytesIO(archive.read(COMPONENTS_FILE)), map_location="cpu", weights_only=False)
+                except (pickle.UnpicklingError, EOFError, RuntimeError) as error:
+                    raise ValueError(
+                        f"{path} is a damaged HhP model: its {COMPONENTS_FILE} cannot be read ({error}); save it again with HhP.save"
+                    ) from error
         except zipfile.BadZipFile as error:
             raise ValueError(f"{path} is not a saved HhP model (not a zip archive): {error}") from error
         model = super().load(file, env=None, device=device, custom_objects=custom_objects,
