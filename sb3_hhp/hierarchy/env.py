@@ -127,6 +127,8 @@ class HierarchicalEnv(gym.Env):
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None) -> tuple[np.ndarray, dict]:
         obs, info = self.env.reset(seed=seed, options=options)
+        if seed is not None:  # the random first episode (line 5) samples primitive actions: same seed, same run
+            self.env.action_space.seed(seed)
         self.last_trace, self.trace = self.trace, EpisodeTrace()
         self._obs = obs
         return obs, info
