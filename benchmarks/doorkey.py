@@ -77,7 +77,7 @@ def main() -> None:
 
     if args.algo == "hhp":
         model = HhP("MlpPolicy", gym.make(args.env), oracle="scripted", query_budget=args.query_budget, seed=args.seed,
-                    **json.loads(args.hhp_kwargs))
+                    query_horizon=args.steps, **json.loads(args.hhp_kwargs))
         eval_env = wrap_env(gym.make(args.env))
     elif args.algo == "dqn":
         model = DQN("MlpPolicy", flat_env(args.env), seed=args.seed)

@@ -75,6 +75,8 @@ class HhP(DoubleDQN):
     :param query_budget: total number of questions over training (>= 0)
     :param t_qry: confidence threshold above which a tuple is asked (fixed mode)
     :param query_mode: "fixed" (t_qry) or "adaptive" (paces the budget over training, DESIGN.md gap 3)
+    :param query_horizon: primitive steps over which the adaptive mode paces the budget (default: the
+        ``total_timesteps`` of each ``learn`` call; set it when training in several ``learn`` calls)
     :param beta: weight of the extrinsic return in eq. 3, in [0, 1]
     :param alpha: weight of the intrinsic reward in eq. 6 (>= 0)
     :param use_preferences: False gives the paper's "Cur" ablation (no queries, reward = R_e)
@@ -119,6 +121,7 @@ class HhP(DoubleDQN):
         query_budget: int = 200,
         t_qry: float = 0.26,
         query_mode: str = "adaptive",
+        query_horizon: Optional[int] = None,
         beta: float = 0.7,
         alpha: float = 0.5,
         use_preferences: bool = True,
@@ -184,6 +187,9 @@ class HhP(DoubleDQN):
         self.query_budget = int(query_budget)
         self.t_qry = t_qry
         self.query_mode = query_mode
+        if query_horizon is not None and query_horizon < 1:
+            raise ValueError(f"query_horizon must be >= 1 primitive steps (or None), got {query_horizon}")
+        self.query_horizon = query_horizon
         self.beta = beta
         self.alpha = alpha
         self.use_preferences = use_preferences
@@ -486,9 +492,8 @@ class HhP(DoubleDQN):
         """Train for ``total_timesteps`` primitive env steps (Algorithm 1)."""
         if self.hierarchy is None:
             raise ValueError("This model has no env: pass one with HhP.load(path, env=env) or model.set_env(env)")
-        self.query_selector.set_total_timesteps(
-            int(total_timesteps + (0 if reset_num_timesteps else self.num_timesteps))
-        )
+        horizon = total_timesteps + (0 if reset_num_timesteps else self.num_timesteps)
+        self.query_selector.set_total_timesteps(int(self.query_horizon or horizon))
         self.resume_preferences()
         return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
 
