@@ -34,17 +34,18 @@ def flat_env(env_id: str) -> gym.Env:
     return Monitor(ImgObsWrapper(FullyObsWrapper(gym.make(env_id))))
 
 
-def evaluate(model, env: gym.Env, episodes: int, hierarchical: bool, offset: int = EVAL_SEED_OFFSET) -> dict:
-    """Deterministic policy on seeds offset + i: success rate and mean return."""
+def evaluate(model, env: gym.Env, episodes: int, hierarchical: bool, offset: int = EVAL_SEED_OFFSET,
+             deterministic: bool = True) -> dict:
+    """The policy (deterministic by default) on seeds offset + i: success rate and mean return."""
     returns, successes = [], []
     for episode in range(episodes):
         obs, _ = env.reset(seed=offset + episode)
         state, start, done, total = None, np.ones(1, dtype=bool), False, 0.0
         while not done:
             if hierarchical:
-                action, state = model.predict(obs, state=state, episode_start=start, deterministic=True)
+                action, state = model.predict(obs, state=state, episode_start=start, deterministic=deterministic)
             else:
-                action, _ = model.predict(obs, deterministic=True)
+                action, _ = model.predict(obs, deterministic=deterministic)
             obs, reward, terminated, truncated, _ = env.step(action)
             start = np.zeros(1, dtype=bool)
             total += float(reward)
@@ -95,6 +96,8 @@ def main() -> None:
         result.update(total_timesteps=int(model.num_timesteps), train_seconds=round(train_seconds, 1),
                       fps=round(model.num_timesteps / train_seconds, 1))
         evaluation = evaluate(model, eval_env, args.eval_episodes, hierarchical, args.eval_seed_offset)
+        stochastic = evaluate(model, eval_env, args.eval_episodes, hierarchical, args.eval_seed_offset, deterministic=False)
+        evaluation.update(stochastic_success_rate=stochastic["success_rate"], stochastic_mean_return=stochastic["mean_return"])
         result["evaluations"].append(dict(timesteps=int(model.num_timesteps), **evaluation))
         result.update(evaluation)
         if hierarchical:

@@ -48,10 +48,8 @@ def main() -> None:
 
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    stats = pstats.Stats(profiler)
-    stats.dump_stats(str(out.with_suffix(".prof")))
     with open(out.with_suffix(".profile.txt"), "w") as handle:
-        pstats.Stats(str(out.with_suffix(".prof")), stream=handle).sort_stats("cumulative").print_stats(40)
+        pstats.Stats(profiler, stream=handle).sort_stats("cumulative").print_stats(40)
     result = dict(env=args.env, steps=args.steps, seed=args.seed, dqn_fps=round(dqn_fps, 1),
                   hhp_fps=round(hhp_fps, 1), ratio=round(hhp_fps / dqn_fps, 3), threads=1)
     out.write_text(json.dumps(result, indent=2))

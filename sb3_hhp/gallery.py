@@ -37,6 +37,8 @@ def _fmt(value: Optional[float], digits: int, percent: bool = False) -> str:
 def _caption(record: dict) -> tuple[str, str]:
     found_at = record.get("found_at")
     first = f"#{int(record['id'])}  found at step {'–' if found_at is None else int(found_at)}"
+    if record.get("name"):
+        first = f"{first}\n{record['name']}"
     second = (
         f"success {_fmt(record.get('success_rate'), 0, percent=True)}  chosen {int(record.get('chosen_recently') or 0)}"
         f"  score {_fmt(record.get('mean_score'), 3)}"
