@@ -22,6 +22,7 @@ import numpy as np
 import torch as th
 from minigrid.wrappers import FullyObsWrapper, ImgObsWrapper
 from stable_baselines3 import DQN, PPO
+from stable_baselines3.common.callbacks import BaseCallback, EveryNTimesteps
 from stable_baselines3.common.monitor import Monitor
 
 from sb3_hhp import HhP
@@ -87,19 +88,19 @@ def main() -> None:
         model = PPO("MlpPolicy", flat_env(args.env), seed=args.seed)
         eval_env = flat_env(args.env)
     hierarchical = args.algo == "hhp"
-    train_seconds = 0.0
-    while model.num_timesteps < args.steps:
-        chunk = min(args.eval_every, args.steps - model.num_timesteps)
+    started = time.perf_counter()
+
+    def record() -> None:
+        """Evaluate now and rewrite the JSON, so a run stopped early keeps what it measured."""
+        train_seconds = time.perf_counter() - started - sum(e["eval_seconds"] for e in result["evaluations"])
         begin = time.perf_counter()
-        model.learn(chunk, reset_num_timesteps=False)
-        train_seconds += time.perf_counter() - begin
-        result.update(total_timesteps=int(model.num_timesteps), train_seconds=round(train_seconds, 1),
-                      fps=round(model.num_timesteps / train_seconds, 1))
         evaluation = evaluate(model, eval_env, args.eval_episodes, hierarchical, args.eval_seed_offset)
         stochastic = evaluate(model, eval_env, args.eval_episodes, hierarchical, args.eval_seed_offset, deterministic=False)
         evaluation.update(stochastic_success_rate=stochastic["success_rate"], stochastic_mean_return=stochastic["mean_return"])
-        result["evaluations"].append(dict(timesteps=int(model.num_timesteps), **evaluation))
-        result.update(evaluation)
+        result.update(total_timesteps=int(model.num_timesteps), train_seconds=round(train_seconds, 1),
+                      fps=round(model.num_timesteps / max(train_seconds, 1e-9), 1), **evaluation)
+        result["evaluations"].append(dict(timesteps=int(model.num_timesteps), eval_seconds=time.perf_counter() - begin,
+                                          **evaluation))
         if hierarchical:
             result.update(queries_used=model.query_selector.used, query_budget=model.query_budget,
                           num_subgoals=len(model.subgoals),
@@ -107,6 +108,15 @@ def main() -> None:
                           subgoal_success=[sub.success_rate for sub in model.subpolicies.policies])
         out.write_text(json.dumps(result, indent=2))
         print(json.dumps(result["evaluations"][-1]), flush=True)
+
+    class Evaluate(BaseCallback):
+        def _on_step(self) -> bool:
+            record()
+            return True
+
+    # one learn call, so exploration and the query budget are paced over the whole run
+    model.learn(args.steps, callback=EveryNTimesteps(args.eval_every, Evaluate()))
+    record()
     print(json.dumps(result, indent=2))
 
 
