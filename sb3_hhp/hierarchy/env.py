@@ -22,7 +22,7 @@ import numpy as np
 from gymnasium import spaces
 
 from sb3_hhp.curiosity.rnd import RND
-from sb3_hhp.goals.base import SUCCESS_KEY, GoalSpace
+from sb3_hhp.goals.base import GoalSpace
 from sb3_hhp.hierarchy.subpolicies import SubpolicySet
 from sb3_hhp.preferences.rewards import pseudo_reward, subpolicy_reward
 

@@ -5,11 +5,10 @@ regresses the average undiscounted return obtained by the agent when it starts i
 aiming for sub-goal ``g``; the oracle prefers the sub-goal with the higher estimate.
 """
 
-import contextlib
 import copy
 import math
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from typing import Any, Optional, Union
 
 import gymnasium
@@ -20,9 +19,10 @@ from stable_baselines3.common.utils import get_device
 
 from sb3_hhp.oracles.base import Answer, Label, Oracle, Query
 from sb3_hhp.preferences.predictor import PreferenceNetwork
+from sb3_hhp.preferences.seeding import OwnRandomState
 
 
-class SyntheticOracle(Oracle):
+class SyntheticOracle(OwnRandomState, Oracle):
     """Prefer the sub-goal with the higher estimated average return (no discount) from the state.
 
     :meth:`observe` stores ``(s, g, R)`` triples in a FIFO buffer (``R``: the undiscounted return the
@@ -86,14 +86,7 @@ class SyntheticOracle(Oracle):
         self.equal_tolerance = float(equal_tolerance)
         self.device = get_device(device)
 
-        if seed is None:
-            seed = int(torch.randint(0, 2**31 - 1, (1,)).item())
-        self.seed = int(seed)
-        self._np_rng = np.random.default_rng(self.seed)
-        self._cpu_rng_state = torch.Generator().manual_seed(self.seed).get_state()
-        self._cuda_rng_state: Optional[torch.Tensor] = None
-        if self.device.type == "cuda":
-            self._cuda_rng_state = torch.Generator(device=self.device).manual_seed(self.seed).get_state()
+        self._init_random_state(seed)
         # PreferenceNetwork validates the space, hidden_dim, dropout, head and architecture
         with self._torch_rng():
             self.network = PreferenceNetwork(observation_space, hidden_dim, dropout, head, architecture)
@@ -111,24 +104,6 @@ class SyntheticOracle(Oracle):
         self._warned_negative = False
 
     # ------------------------------------------------------------------ randomness
-    def _cuda_index(self) -> int:
-        return self.device.index if self.device.index is not None else torch.cuda.current_device()
-
-    @contextlib.contextmanager
-    def _torch_rng(self) -> Iterator[None]:
-        """Run torch's random ops on the oracle's own generator state, leaving the global one untouched."""
-        cuda = self._cuda_rng_state is not None
-        with torch.random.fork_rng(devices=[self._cuda_index()] if cuda else []):
-            torch.set_rng_state(self._cpu_rng_state)
-            if cuda:
-                torch.cuda.set_rng_state(self._cuda_rng_state, self._cuda_index())
-            try:
-                yield
-            finally:
-                self._cpu_rng_state = torch.get_rng_state()
-                if cuda:
-                    self._cuda_rng_state = torch.cuda.get_rng_state(self._cuda_index())
-
     # ------------------------------------------------------------------ the buffer
     def __len__(self) -> int:
         return self._size
@@ -260,9 +235,7 @@ class SyntheticOracle(Oracle):
         state: dict[str, Any] = {
             "network": copy.deepcopy(self.network.state_dict()),
             "optimizer": copy.deepcopy(self.optimizer.state_dict()),
-            "np_rng": copy.deepcopy(self._np_rng.bit_generator.state),
-            "torch_rng": self._cpu_rng_state.clone(),
-            "cuda_rng": None if self._cuda_rng_state is None else self._cuda_rng_state.clone(),
+            **self._random_state_dict(),
         }
         if include_buffer:
             # in storage order, with the write position, so that a resumed run draws the same minibatches
@@ -284,10 +257,7 @@ class SyntheticOracle(Oracle):
             )
         self.network.load_state_dict(state["network"])
         self.optimizer.load_state_dict(state["optimizer"])
-        self._np_rng.bit_generator.state = copy.deepcopy(state["np_rng"])
-        self._cpu_rng_state = state["torch_rng"].clone()
-        if self._cuda_rng_state is not None and state.get("cuda_rng") is not None:
-            self._cuda_rng_state = state["cuda_rng"].clone()
+        self._load_random_state_dict(state)
         if "buffer" in state:
             buffer = state["buffer"]
             size = len(buffer["returns"])

@@ -7,19 +7,23 @@ dropout layer sits before every weight layer, and the spread of the score over m
 (MC dropout, eq. 4) measures how unsure the predictor is, which decides when to ask (line 26).
 """
 
-import contextlib
 import copy
 import math
-from collections.abc import Iterator
 from typing import Any, Optional, Union
 
 import gymnasium
 import numpy as np
 import torch
 import torch.nn.functional as F
-from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first, preprocess_obs
+from stable_baselines3.common.preprocessing import (
+    is_image_space,
+    is_image_space_channels_first,
+    preprocess_obs,
+)
 from stable_baselines3.common.utils import get_device
 from torch import nn
+
+from sb3_hhp.preferences.seeding import OwnRandomState
 
 HEADS = ("linear", "sigmoid", "relu")
 ARCHITECTURES = ("auto", "cnn", "mlp")
@@ -200,7 +204,7 @@ class PreferenceNetwork(nn.Module):
         return self.output_activation(self.head(features)).squeeze(-1)
 
 
-class PreferencePredictor:
+class PreferencePredictor(OwnRandomState):
     """The preference predictor ``p_hat`` with its preference buffer ``R`` (Algorithm 1, lines 25-27).
 
     It scores (state, sub-goal) pairs (the bonus ``b``), measures its own uncertainty by MC dropout
@@ -271,14 +275,7 @@ class PreferencePredictor:
         self.mask_batch_size = int(mask_batch_size)
         self.device = get_device(device)
 
-        if seed is None:
-            seed = int(torch.randint(0, 2**31 - 1, (1,)).item())
-        self.seed = int(seed)
-        self._np_rng = np.random.default_rng(self.seed)
-        self._cpu_rng_state = torch.Generator().manual_seed(self.seed).get_state()
-        self._cuda_rng_state: Optional[torch.Tensor] = None
-        if self.device.type == "cuda":
-            self._cuda_rng_state = torch.Generator(device=self.device).manual_seed(self.seed).get_state()
+        self._init_random_state(seed)
 
         with self._torch_rng():
             self.network = PreferenceNetwork(observation_space, hidden_dim, dropout, head, architecture)
@@ -296,24 +293,6 @@ class PreferencePredictor:
         self._size = 0
 
     # ------------------------------------------------------------------ randomness
-    def _cuda_index(self) -> int:
-        return self.device.index if self.device.index is not None else torch.cuda.current_device()
-
-    @contextlib.contextmanager
-    def _torch_rng(self) -> Iterator[None]:
-        """Run torch's random ops on the predictor's own generator state, leaving the global one untouched."""
-        cuda = self._cuda_rng_state is not None
-        with torch.random.fork_rng(devices=[self._cuda_index()] if cuda else []):
-            torch.set_rng_state(self._cpu_rng_state)
-            if cuda:
-                torch.cuda.set_rng_state(self._cuda_rng_state, self._cuda_index())
-            try:
-                yield
-            finally:
-                self._cpu_rng_state = torch.get_rng_state()
-                if cuda:
-                    self._cuda_rng_state = torch.cuda.get_rng_state(self._cuda_index())
-
     # ------------------------------------------------------------------ inputs
     def _to_tensor(self, obs: Union[np.ndarray, torch.Tensor], name: str) -> torch.Tensor:
         obs = torch.as_tensor(np.asarray(obs) if not isinstance(obs, torch.Tensor) else obs)
@@ -515,9 +494,7 @@ class PreferencePredictor:
                 "pos": self._pos,
                 "size": size,
             },
-            "np_rng": copy.deepcopy(self._np_rng.bit_generator.state),
-            "torch_rng": self._cpu_rng_state.clone(),
-            "cuda_rng": None if self._cuda_rng_state is None else self._cuda_rng_state.clone(),
+            **self._random_state_dict(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -537,8 +514,5 @@ class PreferencePredictor:
         self._targets[:] = buffer["targets"].numpy()
         self._pos = int(buffer["pos"])
         self._size = int(buffer["size"])
-        self._np_rng.bit_generator.state = copy.deepcopy(state["np_rng"])
-        self._cpu_rng_state = state["torch_rng"].clone()
-        if self._cuda_rng_state is not None and state.get("cuda_rng") is not None:
-            self._cuda_rng_state = state["cuda_rng"].clone()
+        self._load_random_state_dict(state)
         self.network.eval()
