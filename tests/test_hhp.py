@@ -123,6 +123,13 @@ def test_predict_keeps_the_subgoal_until_episode_start_or_give_up(trained: HhP) 
     assert goals[0] == chosen[0] and steps[0] == 1
     # the state passed in is not modified in place
     assert state[0][0] == other and state[1][0] == 5
+    # a greedy meta-controller does not take again the sub-goal that just gave up: its best other one
+    failed = (np.array([chosen[0]]), np.array([trained.max_subgoal_steps]))
+    _, (goals, _) = trained.predict(obs, state=failed, episode_start=np.array([False]), deterministic=True)
+    with th.no_grad():
+        q_values = trained.q_net(trained.policy.obs_to_tensor(obs)[0]).cpu().numpy()[0, : len(trained.subgoals)]
+    q_values[chosen[0]] = -np.inf
+    assert goals[0] != chosen[0] and goals[0] == int(np.argmax(q_values))
 
 
 def test_evaluate_policy_works_unchanged(trained: HhP) -> None:

@@ -435,7 +435,8 @@ class HhP(DoubleDQN):
     ) -> tuple[np.ndarray, Optional[tuple[np.ndarray, ...]]]:
         """Primitive actions. ``state`` = (current sub-goal per env, primitive steps spent on it), so SB3's
         ``evaluate_policy`` works unchanged: a new sub-goal is chosen at an episode start, when the
-        current one is reached, or when it gives up after ``max_subgoal_steps``."""
+        current one is reached, or when it gives up after ``max_subgoal_steps`` (a deterministic
+        meta-controller then takes its best *other* sub-goal)."""
         obs = np.asarray(observation)
         vectorized = obs.shape != self.primitive_observation_space.shape
         batch = obs if vectorized else obs[None]
@@ -459,6 +460,17 @@ class HhP(DoubleDQN):
                 renew.append(i)
         if renew:
             chosen, _ = DoubleDQN.predict(self, batch[renew], deterministic=deterministic)
+            gave_up = [row for row, i in enumerate(renew) if goals[i] >= 0 and steps[i] >= self.max_subgoal_steps]
+            if deterministic and gave_up and len(subgoals) > 1:
+                # a sub-goal that just gave up is not chosen again at once: a greedy meta-controller would
+                # otherwise repeat the same failing choice until the episode ends
+                failed = goals[np.asarray(renew)[gave_up]]
+                with th.no_grad():
+                    q_values = self.q_net(self.policy.obs_to_tensor(batch[np.asarray(renew)[gave_up]])[0]).cpu().numpy()
+                q_values[:, len(subgoals):] = -np.inf
+                q_values[np.arange(len(gave_up)), failed] = -np.inf
+                chosen = np.array(chosen, copy=True)
+                chosen[gave_up] = q_values.argmax(axis=1)
             goals[renew] = chosen
             steps[renew] = 0
         actions = np.stack([self.subpolicies[int(goals[i])].act(batch[i], deterministic=deterministic) for i in range(n_envs)])
