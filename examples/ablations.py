@@ -24,6 +24,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_hhp import HhP
 from sb3_hhp.goals import wrap_env
+from small_settings import SMALL_SETTINGS
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "HhP": {},
@@ -56,12 +57,7 @@ def main() -> None:
             gym.make(args.env),
             oracle="scripted",
             query_budget=args.budget,
-            max_subgoal_steps=50,
-            learning_starts=500,
-            buffer_size=50_000,
-            n_masks=100,
-            subpolicy_kwargs=dict(learning_starts=100, buffer_size=20_000, batch_size=64),
-            subpolicy_exploration_steps=2_000,
+            **SMALL_SETTINGS,
             seed=args.seed,
             **VARIANTS[name],
         )

@@ -23,6 +23,7 @@ import torch as th
 
 from sb3_hhp import HhP
 from sb3_hhp.label.server import LabelServer
+from small_settings import SMALL_SETTINGS
 
 
 def parse_args() -> argparse.Namespace:
@@ -53,12 +54,7 @@ def main() -> None:
         oracle="web",  # questions go to the store; answers come back from the page
         preference_db=db,
         query_budget=args.budget,
-        max_subgoal_steps=50,
-        learning_starts=500,
-        buffer_size=50_000,
-        n_masks=100,
-        subpolicy_kwargs=dict(learning_starts=100, buffer_size=20_000, batch_size=64),
-        subpolicy_exploration_steps=2_000,
+        **SMALL_SETTINGS,
         seed=args.seed,
     )
     server = LabelServer(model.store, host=args.host, port=args.port, token=args.token, reply_window_s=args.reply_window)

@@ -25,6 +25,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from sb3_hhp import HhP
 from sb3_hhp.goals import wrap_env
 from sb3_hhp.oracles import MiniGridScriptedOracle, MultiExpertOracle, NoisyOracle, Oracle
+from small_settings import SMALL_SETTINGS
 
 
 def parse_args() -> argparse.Namespace:
@@ -49,12 +50,7 @@ def train(args: argparse.Namespace, oracle: Oracle) -> HhP:
         gym.make(args.env),
         oracle=oracle,  # an Oracle instance instead of a name
         query_budget=args.budget,
-        max_subgoal_steps=50,
-        learning_starts=500,
-        buffer_size=50_000,
-        n_masks=100,
-        subpolicy_kwargs=dict(learning_starts=100, buffer_size=20_000, batch_size=64),
-        subpolicy_exploration_steps=2_000,
+        **SMALL_SETTINGS,
         seed=args.seed,
     )
     model.learn(args.steps)

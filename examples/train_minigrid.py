@@ -20,6 +20,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_hhp import HhP
 from sb3_hhp.goals import wrap_env
+from small_settings import SMALL_SETTINGS
 
 
 def parse_args() -> argparse.Namespace:
@@ -44,12 +45,7 @@ def main() -> None:
         gym.make(args.env),
         oracle="scripted",
         query_budget=args.budget,
-        max_subgoal_steps=args.max_subgoal_steps,
-        learning_starts=500,  # meta-controller warm-up, in primitive steps (beyond the first episode)
-        buffer_size=50_000,
-        n_masks=100,  # MC-dropout masks of the confidence (paper: 500)
-        subpolicy_kwargs=dict(learning_starts=100, buffer_size=20_000, batch_size=64),
-        subpolicy_exploration_steps=2_000,
+        **{**SMALL_SETTINGS, "max_subgoal_steps": args.max_subgoal_steps},
         seed=args.seed,
         verbose=args.verbose,
     )
