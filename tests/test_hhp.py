@@ -384,6 +384,30 @@ def test_without_curiosity_no_intrinsic_reward() -> None:
     assert model.num_timesteps >= 600
 
 
+def test_shared_experience_is_relabelled_with_each_subgoals_eq5_reward() -> None:
+    """Every primitive step lands in every other subpolicy's buffer with that sub-goal's own eq. 5
+    reward (no curiosity here, so eq. 6 adds nothing): +1 where its key is reached, -1 where the
+    episode terminated without reaching it, 0 otherwise."""
+    model = make_model(EMPTY, use_curiosity=False)
+    model.learn(600)
+    hierarchy, goal_space = model.hierarchy, model.goal_space
+    assert hierarchy.n_subgoals >= 2
+    obs, _ = hierarchy.reset(seed=3)
+    sizes = [sub.model.replay_buffer.size() for sub in model.subpolicies.policies]
+    next_obs, _, terminated, _, info = hierarchy.step(0)
+    steps = info["primitive_steps"]
+    other = model.subpolicies[1].model.replay_buffer
+    assert other.size() == sizes[1] + steps
+    keys = hierarchy.trace.low_keys
+    for offset in range(steps):
+        index = (other.pos - steps + offset) % other.buffer_size
+        reached = goal_space.achieved(keys[offset], hierarchy.subgoals[1].key)
+        last = offset == steps - 1
+        expected = 1.0 if reached else (-1.0 if (terminated and last) else 0.0)
+        assert other.rewards[index, 0] == pytest.approx(expected)
+        assert bool(other.dones[index, 0]) == (reached or (terminated and last))
+
+
 def test_with_curiosity_intrinsic_rewards_are_not_all_zero() -> None:
     model = make_model(EMPTY)
     model.learn(400)

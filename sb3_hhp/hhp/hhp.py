@@ -684,7 +684,8 @@ class HhP(DoubleDQN):
             capacity=int(self.action_space.n),
         )
         hierarchy.subgoals = list(self.subgoals)
-        hierarchy.visits = Counter(getattr(self, "_loaded_visits", {}) or (self.hierarchy.visits if self.hierarchy else {}))
+        # the visits of the env in use are the newest; a model loaded without an env has only the saved ones
+        hierarchy.visits = Counter(self.hierarchy.visits if self.hierarchy is not None else getattr(self, "_loaded_visits", {}))
         hierarchy.num_steps = self.num_timesteps
         self.hierarchy = hierarchy
         self._attach(hierarchy)

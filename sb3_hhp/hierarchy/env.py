@@ -119,11 +119,6 @@ class HierarchicalEnv(gym.Env):
             self.action_space = spaces.Discrete(2 * int(self.action_space.n))
         return self.n_subgoals - 1
 
-    @property
-    def goal_obs(self) -> np.ndarray:
-        """Observations of all sub-goals, (n_subgoals, *obs_shape)."""
-        return np.stack([goal.obs for goal in self.subgoals]) if self.subgoals else np.empty((0, *self.observation_space.shape))
-
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None) -> tuple[np.ndarray, dict]:
         obs, info = self.env.reset(seed=seed, options=options)
@@ -162,10 +157,10 @@ class HierarchicalEnv(gym.Env):
             give_up = steps >= self.max_subgoal_steps
             terminal = achieved or terminated or truncated or give_up
             intrinsic = float(self.rnd.intrinsic_reward(next_obs[None])[0]) if self.rnd is not None else 0.0  # eq. 7
-            r_t = subpolicy_reward(pseudo_reward(achieved, terminal), intrinsic, self.alpha)  # eq. 5, 6 (lines 17-18)
-            subpolicy.observe(obs, next_obs, action_t, r_t, terminal)  # lines 19-20
             if self.share_experience:
                 self._relabel(goal_id, obs, next_obs, action_t, key, intrinsic, terminated)
+            r_t = subpolicy_reward(pseudo_reward(achieved, terminal), intrinsic, self.alpha)  # eq. 5, 6 (lines 17-18)
+            subpolicy.observe(obs, next_obs, action_t, r_t, terminal)  # lines 19-20
             self.visits[key] += 1
             trace.low_obs.append(next_obs)
             trace.low_keys.append(key)
@@ -189,13 +184,13 @@ class HierarchicalEnv(gym.Env):
                  intrinsic: float, terminated: bool) -> None:
         """Intra-option learning: the transition is experience for every other sub-goal too, with that
         sub-goal's own pseudo-reward (eq. 5) and the same curiosity bonus (eq. 6); only the active
-        subpolicy takes a gradient step."""
-        for goal_id, (goal, other) in enumerate(zip(self.subgoals, self.subpolicies.policies)):
-            if goal_id == active:
-                continue
-            done = self.goal_space.achieved(key, goal.key)
-            terminal = done or terminated
-            other.store(obs, next_obs, action, subpolicy_reward(pseudo_reward(done, terminal), intrinsic, self.alpha), terminal)
+        subpolicy takes a gradient step. The rewards of all sub-goals come from one vectorised call."""
+        done = np.array([self.goal_space.achieved(key, goal.key) for goal in self.subgoals])
+        terminal = done | terminated
+        rewards = subpolicy_reward(pseudo_reward(done, terminal), intrinsic, self.alpha)  # eq. 5, 6 for every g
+        for goal_id, other in enumerate(self.subpolicies.policies):
+            if goal_id != active:
+                other.store(obs, next_obs, action, float(rewards[goal_id]), bool(terminal[goal_id]))
 
     def _explore_randomly(self) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Before the first sub-goal exists: one random-action episode whose states seed G (Algorithm 1 line 5)."""
