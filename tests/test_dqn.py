@@ -115,6 +115,49 @@ def _filled_buffer(n: int, buffer_size: int = 16, n_envs: int = 1, **kwargs) -> 
     return buffer
 
 
+def test_per_n_step_returns_by_hand() -> None:
+    """Transition k (reward k) sums gamma^j r_{k+j} until a terminal (k = 4), a timeout (k = 8), the newest
+    transition (k = 11) or n = 3 steps; next obs, done and the bootstrap discount gamma^m follow."""
+    gamma, n = 0.9, 3
+    buffer = PrioritizedReplayBuffer(32, spaces.Box(-np.inf, np.inf, (1,), np.float32), spaces.Discrete(2),
+                                     device="cpu", n_steps=n, gamma=gamma)
+    for k in range(12):
+        done = k in (4, 8)
+        info = {"TimeLimit.truncated": k == 8}
+        buffer.add(np.array([[k]], np.float32), np.array([[k + 100]], np.float32), np.zeros(1), np.array([k], np.float32),
+                   np.array([done]), [info])
+    drawn: dict[int, tuple] = {}
+    for _ in range(50):
+        batch = buffer.sample(64)
+        for row, index in enumerate(batch.indices):
+            drawn[int(index)] = (float(batch.rewards[row, 0]), float(batch.next_observations[row, 0]),
+                                 float(batch.dones[row, 0]), float(batch.discounts[row, 0]))
+    assert sorted(drawn) == list(range(12))
+    for k in range(12):
+        m = 1
+        while m < n and (k + m - 1) not in (4, 8) and k + m - 1 < 11:
+            m += 1
+        expected_return = sum(gamma**j * (k + j) for j in range(m))
+        last = k + m - 1
+        expected = (expected_return, last + 100, 1.0 if last == 4 else 0.0, gamma**m)
+        np.testing.assert_allclose(drawn[k], expected, rtol=1e-5, err_msg=f"transition {k}")
+
+
+def test_per_n_steps_invalid_arguments() -> None:
+    space, actions = spaces.Box(-1, 1, (1,), np.float32), spaces.Discrete(2)
+    with pytest.raises(ValueError, match="n_steps"):
+        PrioritizedReplayBuffer(8, space, actions, n_steps=0)
+    with pytest.raises(ValueError, match="optimize_memory_usage"):
+        PrioritizedReplayBuffer(8, space, actions, n_steps=3, optimize_memory_usage=True)
+
+
+def test_double_dqn_n_steps_under_per() -> None:
+    model = _model(dim=2, n_steps=3)
+    assert isinstance(model.replay_buffer, PrioritizedReplayBuffer) and model.replay_buffer.n_steps == 3
+    model.learn(150)
+    assert model._n_updates == 50
+
+
 def test_per_new_transitions_get_max_priority() -> None:
     alpha, eps = 0.6, 1e-6
     buffer = _filled_buffer(5, alpha=alpha, epsilon=eps)
@@ -444,7 +487,6 @@ def test_save_load(tmp_path) -> None:
         (dict(prioritized_replay_eps=0.0), "prioritized_replay_eps"),
         (dict(double_q="yes"), "double_q"),
         (dict(prioritized_replay=1), "prioritized_replay"),
-        (dict(n_steps=3), "n_steps"),
     ],
 )
 def test_double_dqn_invalid_arguments(kwargs: dict, match: str) -> None:

@@ -408,6 +408,29 @@ def test_shared_experience_is_relabelled_with_each_subgoals_eq5_reward() -> None
         assert bool(other.dones[index, 0]) == (reached or (terminated and last))
 
 
+def test_relabelled_step_at_the_time_limit_is_a_timeout() -> None:
+    """Where the episode is cut by its time limit, the other subpolicies get the step as a timeout: their
+    n-step returns stop there instead of running on into the next episode, and the step is bootstrapped."""
+    model = make_model(EMPTY, use_curiosity=False)
+    model.learn(600)
+    hierarchy = model.hierarchy
+    assert hierarchy.n_subgoals >= 2 and model.subpolicies[1].model.replay_buffer.n_steps > 1
+    hierarchy.env.unwrapped.max_steps = 2
+    for seed in range(20):
+        hierarchy.reset(seed=seed)
+        _, _, terminated, truncated, info = hierarchy.step(0)
+        if truncated and not terminated and not model.goal_space.achieved(hierarchy.trace.low_keys[-1], hierarchy.subgoals[1].key):
+            break
+    else:
+        pytest.fail("no episode was cut by the time limit")
+    other = model.subpolicies[1].model.replay_buffer
+    last = (other.pos - 1) % other.buffer_size
+    assert bool(other.timeouts[last, 0]) and bool(other.dones[last, 0])
+    assert other.rewards[last, 0] == pytest.approx(0.0)
+    previous = (last - 1) % other.buffer_size
+    assert not other.timeouts[previous, 0]
+
+
 def test_with_curiosity_intrinsic_rewards_are_not_all_zero() -> None:
     model = make_model(EMPTY)
     model.learn(400)

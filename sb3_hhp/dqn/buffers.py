@@ -56,6 +56,10 @@ class PrioritizedReplayBuffer(ReplayBuffer):
     :param alpha: Prioritization exponent in ``[0, 1]`` (0: uniform sampling).
     :param beta: Importance-sampling exponent in ``[0, 1]`` (1: full correction).
     :param epsilon: Constant ``> 0`` added to ``|delta|`` so that no transition has priority 0.
+    :param n_steps: Sample n-step returns ``sum_{k<m} gamma^k r_{t+k}`` up to the first terminal,
+        timeout or newest transition (``m <= n_steps``), with ``s_{t+m}`` as next observation and
+        ``gamma^m`` as the per-sample discount of the bootstrap (1: one-step transitions).
+    :param gamma: Discount of the n-step returns, in ``[0, 1]``.
     """
 
     def __init__(
@@ -70,6 +74,8 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         alpha: float = 0.6,
         beta: float = 0.4,
         epsilon: float = 1e-6,
+        n_steps: int = 1,
+        gamma: float = 0.99,
     ) -> None:
         if buffer_size < 1:
             raise ValueError(f"buffer_size must be >= 1, got {buffer_size}")
@@ -81,6 +87,12 @@ class PrioritizedReplayBuffer(ReplayBuffer):
             raise ValueError(f"beta must be in [0, 1], got {beta}")
         if not epsilon > 0.0:
             raise ValueError(f"epsilon must be > 0, got {epsilon}")
+        if int(n_steps) != n_steps or n_steps < 1:
+            raise ValueError(f"n_steps must be an integer >= 1, got {n_steps}")
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        if n_steps > 1 and optimize_memory_usage:
+            raise ValueError("n_steps > 1 needs optimize_memory_usage=False (next observations are read from the n-th transition)")
         if isinstance(observation_space, spaces.Dict):
             raise ValueError(
                 "PrioritizedReplayBuffer does not support Dict observation spaces; "
@@ -98,6 +110,8 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         self.alpha = float(alpha)
         self.beta = float(beta)
         self.epsilon = float(epsilon)
+        self.n_steps = int(n_steps)
+        self.gamma = float(gamma)
         self.tree = SumTree(self.buffer_size * self.n_envs)
         # Seeded from the global NumPy state, which SB3's `set_random_seed` has fixed beforehand.
         self._rng = np.random.default_rng(np.random.randint(0, 2**31 - 1))
@@ -176,6 +190,9 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         weights = (n_stored * probabilities) ** (-self.beta) / (n_stored * min_probability) ** (-self.beta)
 
         batch_inds, env_inds = np.divmod(indices, self.n_envs)
+        weights_t = self.to_torch(weights.astype(np.float32).reshape(-1, 1))
+        if self.n_steps > 1:
+            return self._n_step_samples(batch_inds, env_inds, env, weights_t, indices)
         if self.optimize_memory_usage:
             next_obs = self.observations[(batch_inds + 1) % self.buffer_size, env_inds, :]
         else:
@@ -189,6 +206,35 @@ class PrioritizedReplayBuffer(ReplayBuffer):
             dones=self.to_torch(dones.reshape(-1, 1)),
             rewards=self.to_torch(self._normalize_reward(self.rewards[batch_inds, env_inds].reshape(-1, 1), env)),
             discounts=None,
-            weights=self.to_torch(weights.astype(np.float32).reshape(-1, 1)),
+            weights=weights_t,
+            indices=indices,
+        )
+
+    def _n_step_samples(
+        self, batch_inds: np.ndarray, env_inds: np.ndarray, env: VecNormalize | None, weights: th.Tensor, indices: np.ndarray
+    ) -> PrioritizedReplayBufferSamples:
+        """The n-step return from each drawn transition: it runs over the transitions stored after it
+        (same env) and stops at the first terminal or timeout, at the newest transition, or after n."""
+        steps = np.arange(self.n_steps)
+        rows = (batch_inds[:, None] + steps) % self.buffer_size  # (B, n)
+        cols = env_inds[:, None]
+        newer = (self.pos - 1 - batch_inds) % self.buffer_size  # transitions of this env stored after the drawn one
+        stop = self.dones[rows, cols].astype(bool) | self.timeouts[rows, cols].astype(bool) | (steps >= newer[:, None])
+        stop[:, -1] = True
+        last = stop.argmax(axis=1)  # m - 1: the index of the last transition summed
+        mask = steps[None, :] <= last[:, None]
+        rewards = self._normalize_reward(self.rewards[rows, cols], env)
+        returns = (rewards * self.gamma ** steps[None, :] * mask).sum(axis=1, keepdims=True)
+        last_rows = rows[np.arange(len(rows)), last]
+        dones = self.dones[last_rows, env_inds] * (1 - self.timeouts[last_rows, env_inds])
+        discounts = (self.gamma ** (last + 1)).astype(np.float32).reshape(-1, 1)
+        return PrioritizedReplayBufferSamples(
+            observations=self.to_torch(self._normalize_obs(self.observations[batch_inds, env_inds, :], env)),
+            actions=self.to_torch(self.actions[batch_inds, env_inds, :]),
+            next_observations=self.to_torch(self._normalize_obs(self.next_observations[last_rows, env_inds, :], env)),
+            dones=self.to_torch(dones.reshape(-1, 1)),
+            rewards=self.to_torch(returns.astype(np.float32)),
+            discounts=self.to_torch(discounts),
+            weights=weights,
             indices=indices,
         )

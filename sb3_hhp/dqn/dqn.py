@@ -82,6 +82,7 @@ class DoubleDQN(DQN):
     :param prioritized_replay_alpha: Prioritization exponent in ``[0, 1]``.
     :param prioritized_replay_beta: Importance-sampling exponent in ``[0, 1]``.
     :param prioritized_replay_eps: Constant ``> 0`` added to ``|td error|`` in the priorities.
+    ``n_steps`` > 1 gives n-step returns under prioritized replay too (the buffer computes them).
 
     Hooks for subclasses and the hierarchical algorithm:
 
@@ -145,17 +146,14 @@ class DoubleDQN(DQN):
         if not prioritized_replay_eps > 0.0:
             raise ValueError(f"prioritized_replay_eps must be > 0, got {prioritized_replay_eps}")
         if prioritized_replay and replay_buffer_class is None:
-            if n_steps > 1:
-                raise ValueError(
-                    f"n_steps={n_steps} is not supported with prioritized_replay=True; "
-                    "use n_steps=1 or prioritized_replay=False"
-                )
             replay_buffer_class = PrioritizedReplayBuffer
             replay_buffer_kwargs = {
                 **(replay_buffer_kwargs or {}),
                 "alpha": prioritized_replay_alpha,
                 "beta": prioritized_replay_beta,
                 "epsilon": prioritized_replay_eps,
+                "n_steps": n_steps,
+                "gamma": gamma,
             }
         self.double_q = double_q
         self.prioritized_replay = prioritized_replay
@@ -191,6 +189,17 @@ class DoubleDQN(DQN):
             device=device,
             _init_setup_model=_init_setup_model,
         )
+
+    def _setup_model(self) -> None:
+        # The prioritized buffer computes n-step returns itself (n_steps is in its kwargs); SB3 would
+        # otherwise warn that n_steps is ignored for a custom buffer class.
+        n_steps = self.n_steps
+        if self.replay_buffer_class is PrioritizedReplayBuffer:
+            self.n_steps = 1
+        try:
+            super()._setup_model()
+        finally:
+            self.n_steps = n_steps
 
     # ------------------------------------------------------------------ hooks
 

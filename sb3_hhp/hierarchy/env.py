@@ -158,7 +158,7 @@ class HierarchicalEnv(gym.Env):
             terminal = achieved or terminated or truncated or give_up
             intrinsic = float(self.rnd.intrinsic_reward(next_obs[None])[0]) if self.rnd is not None else 0.0  # eq. 7
             if self.share_experience:
-                self._relabel(goal_id, obs, next_obs, action_t, key, intrinsic, terminated)
+                self._relabel(goal_id, obs, next_obs, action_t, key, intrinsic, terminated, truncated)
             r_t = subpolicy_reward(pseudo_reward(achieved, terminal), intrinsic, self.alpha)  # eq. 5, 6 (lines 17-18)
             subpolicy.observe(obs, next_obs, action_t, r_t, terminal)  # lines 19-20
             self.visits[key] += 1
@@ -181,16 +181,18 @@ class HierarchicalEnv(gym.Env):
         return obs, extrinsic_return, terminated, truncated, info
 
     def _relabel(self, active: int, obs: np.ndarray, next_obs: np.ndarray, action: Any, key: Hashable,
-                 intrinsic: float, terminated: bool) -> None:
+                 intrinsic: float, terminated: bool, truncated: bool = False) -> None:
         """Intra-option learning: the transition is experience for every other sub-goal too, with that
         sub-goal's own pseudo-reward (eq. 5) and the same curiosity bonus (eq. 6); only the active
-        subpolicy takes a gradient step. The rewards of all sub-goals come from one vectorised call."""
+        subpolicy takes a gradient step. The rewards of all sub-goals come from one vectorised call. An
+        episode cut by its time limit is stored as a timeout: bootstrapped, but no n-step return runs on
+        into the next episode."""
         done = np.array([self.goal_space.achieved(key, goal.key) for goal in self.subgoals])
         terminal = done | terminated
         rewards = subpolicy_reward(pseudo_reward(done, terminal), intrinsic, self.alpha)  # eq. 5, 6 for every g
         for goal_id, other in enumerate(self.subpolicies.policies):
             if goal_id != active:
-                other.store(obs, next_obs, action, float(rewards[goal_id]), bool(terminal[goal_id]))
+                other.store(obs, next_obs, action, float(rewards[goal_id]), bool(terminal[goal_id]), timeout=truncated)
 
     def _explore_randomly(self) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Before the first sub-goal exists: one random-action episode whose states seed G (Algorithm 1 line 5)."""

@@ -44,8 +44,10 @@ def default_subpolicy_kwargs(action_space: spaces.Space) -> dict[str, Any]:
     )
     if isinstance(action_space, spaces.Discrete):
         # a subpolicy lives a few thousand of its own steps: its target net follows every 250 (2,000 in the paper)
+        # n-step returns (8 steps) carry the sparse eq. 5 reward back along a sub-goal's path far faster
+        # than one-step targets (benchmarks/README.md, "Subpolicy learning")
         kwargs.update(target_update_interval=250, exploration_fraction=1.0,
-                      exploration_initial_eps=1.0, exploration_final_eps=0.05)
+                      exploration_initial_eps=1.0, exploration_final_eps=0.05, n_steps=8)
     return kwargs
 
 
@@ -89,13 +91,15 @@ class Subpolicy:
             action = np.clip(action + model.action_noise(), model.action_space.low, model.action_space.high)
         return action
 
-    def store(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: float, done: bool) -> None:
-        """Add one transition to this subpolicy's buffer D_g (Algorithm 1 line 19), without training."""
+    def store(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: float, done: bool,
+              timeout: bool = False) -> None:
+        """Add one transition to this subpolicy's buffer D_g (Algorithm 1 line 19), without training.
+        ``timeout``: the episode was cut by its time limit here (bootstrapped, but n-step returns stop)."""
         model = self.model
         buffer_action = action if self._discrete else model.policy.scale_action(action)
         model.replay_buffer.add(  # type: ignore[union-attr]
             obs[None], next_obs[None], np.asarray([buffer_action]), np.asarray([reward], np.float32),
-            np.asarray([done]), [{}],
+            np.asarray([done or timeout]), [{"TimeLimit.truncated": timeout and not done}],
         )
 
     def observe(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: float, done: bool) -> None:
