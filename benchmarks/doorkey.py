@@ -67,7 +67,8 @@ def main() -> None:
     parser.add_argument("--eval-every", type=int, default=100_000, help="also evaluate every N steps (written as they come)")
     parser.add_argument("--eval-seed-offset", type=int, default=EVAL_SEED_OFFSET,
                         help="evaluation seeds start here (tuning runs use another range than the final runs)")
-    parser.add_argument("--hhp-kwargs", default="{}", help="JSON dict of HhP keyword arguments (variants)")
+    parser.add_argument("--hhp-kwargs", default="{}",
+                        help="JSON dict of HhP keyword arguments (variants); subpolicy_kwargs defaults to n_steps 8, as hhp.yml")
     parser.add_argument("--tag", default="", help="name of the variant in the results")
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
@@ -79,7 +80,7 @@ def main() -> None:
 
     if args.algo == "hhp":
         model = HhP("MlpPolicy", gym.make(args.env), oracle="scripted", query_budget=args.query_budget, seed=args.seed,
-                    query_horizon=args.steps, **json.loads(args.hhp_kwargs))
+                    query_horizon=args.steps, **{"subpolicy_kwargs": {"n_steps": 8}, **json.loads(args.hhp_kwargs)})
         eval_env = wrap_env(gym.make(args.env))
     elif args.algo == "dqn":
         model = DQN("MlpPolicy", flat_env(args.env), seed=args.seed)

@@ -411,10 +411,10 @@ def test_shared_experience_is_relabelled_with_each_subgoals_eq5_reward() -> None
 def test_relabelled_step_at_the_time_limit_is_a_timeout() -> None:
     """Where the episode is cut by its time limit, the other subpolicies get the step as a timeout: their
     n-step returns stop there instead of running on into the next episode, and the step is bootstrapped."""
-    model = make_model(EMPTY, use_curiosity=False)
+    model = make_model(EMPTY, use_curiosity=False, subpolicy_kwargs={**TINY.get("subpolicy_kwargs", {}), "n_steps": 8})
     model.learn(600)
     hierarchy = model.hierarchy
-    assert hierarchy.n_subgoals >= 2 and model.subpolicies[1].model.replay_buffer.n_steps > 1
+    assert hierarchy.n_subgoals >= 2 and model.subpolicies[1].model.replay_buffer.n_steps == 8
     hierarchy.env.unwrapped.max_steps = 2
     for seed in range(20):
         hierarchy.reset(seed=seed)
