@@ -12,16 +12,7 @@ from sb3_hhp import HhP
 from sb3_hhp.goals import wrap_env
 variant, steps = sys.argv[1], int(sys.argv[2])
 
-class BonusStd:
-    """sigma = running std of the per-step bonus itself (not of its discounted returns)."""
-    def __init__(self): self.n, self.mean, self.m2 = 0, 0.0, 0.0
-    def update(self, b):
-        for x in np.ravel(b):
-            self.n += 1; d = x - self.mean; self.mean += d / self.n; self.m2 += d * (x - self.mean)
-    @property
-    def sigma(self): return float(np.sqrt(self.m2 / self.n)) if self.n > 1 and self.m2 > 0 else 1.0
-    def state_dict(self): return {}
-    def load_state_dict(self, s): pass
+from bonus_scale_nstep import BonusStd  # sigma = running std of the per-step bonus itself
 
 kw = dict(n_opt=32)
 if variant == "beta03": kw["beta"] = 0.3

@@ -11,6 +11,7 @@ A sub-goal episode ends when the key is faced (+1), or after 50 steps (-1), as i
 import argparse
 import json
 import pathlib
+import sys
 import time
 
 import gymnasium as gym
@@ -22,6 +23,9 @@ from sb3_hhp.goals import wrap_env
 from sb3_hhp.goals.minigrid import MiniGridGoalSpace
 from sb3_hhp.hierarchy.subpolicies import default_subpolicy_kwargs
 from sb3_hhp.preferences.rewards import pseudo_reward
+
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+from doorkey import evaluate  # noqa: E402
 
 FACING_KEY = (1, 5, 0)  # (carried: nothing, in front: key, state)
 
@@ -46,16 +50,19 @@ class ReachSubgoal(gym.Wrapper):
         return obs, float(pseudo_reward(reached, reached or give_up)), reached or give_up, False, info
 
 
-def success_rate(env: gym.Env, act, episodes: int) -> float:
-    successes = 0
-    for episode in range(episodes):
-        obs, _ = env.reset(seed=30_000 + episode)
-        done, info = False, {}
-        while not done:
-            obs, _, terminated, truncated, info = env.step(act(obs))
-            done = terminated or truncated
-        successes += bool(info["is_success"])
-    return successes / episodes
+def success_rate(model, env: gym.Env, episodes: int, deterministic: bool) -> float:
+    """Reached the sub-goal = a positive return (+1 on reaching it, -1 on giving up), on seeds 30_000 + i."""
+    return evaluate(model, env, episodes, hierarchical=False, offset=30_000, deterministic=deterministic)["success_rate"]
+
+
+class RandomPolicy:
+    """Uniform random primitive actions, with ``predict`` as an SB3 model has."""
+
+    def __init__(self, action_space: gym.spaces.Discrete, seed: int) -> None:
+        self.action_space, self.rng = action_space, np.random.default_rng(seed)
+
+    def predict(self, obs: np.ndarray, deterministic: bool = False) -> tuple[int, None]:
+        return int(self.rng.integers(self.action_space.n)), None
 
 
 def main() -> None:
@@ -75,13 +82,12 @@ def main() -> None:
     start = time.time()
     model.learn(args.steps)
     seconds = time.time() - start
-    rng = np.random.default_rng(args.seed)
     result = dict(
         env=args.env, subgoal="carrying nothing, facing key", n_steps=args.n_steps, train_steps=args.steps, seed=args.seed,
         eval_episodes=args.episodes, seconds=round(seconds, 1),
-        greedy=success_rate(env, lambda obs: model.predict(obs, deterministic=True)[0], args.episodes),
-        epsilon_greedy=success_rate(env, lambda obs: model.predict(obs, deterministic=False)[0], args.episodes),
-        random=success_rate(env, lambda obs: int(rng.integers(env.action_space.n)), args.episodes),
+        greedy=success_rate(model, env, args.episodes, deterministic=True),
+        epsilon_greedy=success_rate(model, env, args.episodes, deterministic=False),
+        random=success_rate(RandomPolicy(env.action_space, args.seed), env, args.episodes, deterministic=False),
     )
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

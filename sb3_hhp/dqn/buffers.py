@@ -190,31 +190,37 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         weights = (n_stored * probabilities) ** (-self.beta) / (n_stored * min_probability) ** (-self.beta)
 
         batch_inds, env_inds = np.divmod(indices, self.n_envs)
-        weights_t = self.to_torch(weights.astype(np.float32).reshape(-1, 1))
         if self.n_steps > 1:
-            return self._n_step_samples(batch_inds, env_inds, env, weights_t, indices)
-        if self.optimize_memory_usage:
-            next_obs = self.observations[(batch_inds + 1) % self.buffer_size, env_inds, :]
+            rewards, last_rows, discounts = self._n_step_returns(batch_inds, env_inds, env)
         else:
-            next_obs = self.next_observations[batch_inds, env_inds, :]
+            rewards = self._normalize_reward(self.rewards[batch_inds, env_inds].reshape(-1, 1), env)
+            last_rows, discounts = batch_inds, None
+        if self.optimize_memory_usage:
+            next_obs = self.observations[(last_rows + 1) % self.buffer_size, env_inds, :]
+        else:
+            next_obs = self.next_observations[last_rows, env_inds, :]
         # Only use dones that are not due to timeouts
-        dones = self.dones[batch_inds, env_inds] * (1 - self.timeouts[batch_inds, env_inds])
+        dones = self.dones[last_rows, env_inds] * (1 - self.timeouts[last_rows, env_inds])
         return PrioritizedReplayBufferSamples(
             observations=self.to_torch(self._normalize_obs(self.observations[batch_inds, env_inds, :], env)),
             actions=self.to_torch(self.actions[batch_inds, env_inds, :]),
             next_observations=self.to_torch(self._normalize_obs(next_obs, env)),
             dones=self.to_torch(dones.reshape(-1, 1)),
-            rewards=self.to_torch(self._normalize_reward(self.rewards[batch_inds, env_inds].reshape(-1, 1), env)),
-            discounts=None,
-            weights=weights_t,
+            rewards=self.to_torch(rewards.astype(np.float32)),
+            discounts=None if discounts is None else self.to_torch(discounts),
+            weights=self.to_torch(weights.astype(np.float32).reshape(-1, 1)),
             indices=indices,
         )
 
-    def _n_step_samples(
-        self, batch_inds: np.ndarray, env_inds: np.ndarray, env: VecNormalize | None, weights: th.Tensor, indices: np.ndarray
-    ) -> PrioritizedReplayBufferSamples:
+    def _n_step_returns(
+        self, batch_inds: np.ndarray, env_inds: np.ndarray, env: VecNormalize | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The n-step return from each drawn transition: it runs over the transitions stored after it
-        (same env) and stops at the first terminal or timeout, at the newest transition, or after n."""
+        (same env) and stops at the first terminal or timeout, at the newest transition, or after n.
+
+        :return: the returns ``(B, 1)``, the buffer row of the last transition summed (its next
+            observation and done flag close the return), and the bootstrap discounts ``gamma^m`` ``(B, 1)``
+        """
         steps = np.arange(self.n_steps)
         rows = (batch_inds[:, None] + steps) % self.buffer_size  # (B, n)
         cols = env_inds[:, None]
@@ -225,16 +231,5 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         mask = steps[None, :] <= last[:, None]
         rewards = self._normalize_reward(self.rewards[rows, cols], env)
         returns = (rewards * self.gamma ** steps[None, :] * mask).sum(axis=1, keepdims=True)
-        last_rows = rows[np.arange(len(rows)), last]
-        dones = self.dones[last_rows, env_inds] * (1 - self.timeouts[last_rows, env_inds])
         discounts = (self.gamma ** (last + 1)).astype(np.float32).reshape(-1, 1)
-        return PrioritizedReplayBufferSamples(
-            observations=self.to_torch(self._normalize_obs(self.observations[batch_inds, env_inds, :], env)),
-            actions=self.to_torch(self.actions[batch_inds, env_inds, :]),
-            next_observations=self.to_torch(self._normalize_obs(self.next_observations[last_rows, env_inds, :], env)),
-            dones=self.to_torch(dones.reshape(-1, 1)),
-            rewards=self.to_torch(returns.astype(np.float32)),
-            discounts=self.to_torch(discounts),
-            weights=weights,
-            indices=indices,
-        )
+        return returns, rows[np.arange(len(rows)), last], discounts
