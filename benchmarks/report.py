@@ -15,10 +15,13 @@ def main() -> None:
     args = parser.parse_args()
     results = [json.loads(path.read_text()) for path in sorted(pathlib.Path(args.folder).glob("*.json"))]
     results = [r for r in results if "evaluations" in r]
+    several_envs = len({r["env"] for r in results}) > 1
     print("| run | seed | steps | fps | success rate | mean return | eval episodes | queries | sub-goals |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in results:
         name = r["algo"] + (f" ({r['tag']})" if r.get("tag") else "")
+        if several_envs:
+            name += " " + r["env"].replace("MiniGrid-", "").replace("-v0", "")
         queries = f"{r['queries_used']}/{r['query_budget']}" if "queries_used" in r else "-"
         print(f"| {name} | {r['seed']} | {r['total_timesteps']} | {r['fps']} | {r['success_rate']:.2f} | "
               f"{r['mean_return']:.3f} | {r['eval_episodes']} | {queries} | {r.get('num_subgoals', '-')} |")
@@ -32,7 +35,7 @@ def main() -> None:
         for r in results:
             steps = [e["timesteps"] for e in r["evaluations"]]
             success = [e["success_rate"] for e in r["evaluations"]]
-            ax.plot(steps, success, marker="o", label=f"{r['algo']} {r.get('tag', '')} s{r['seed']}".strip())
+            ax.plot(steps, success, marker="o", label=f"{r['algo']} {r.get('tag', '')} {r['env'].replace('MiniGrid-', '')} s{r['seed']}")
         ax.set_xlabel("primitive env steps")
         ax.set_ylabel("success rate (fresh seeds)")
         ax.set_ylim(-0.05, 1.05)

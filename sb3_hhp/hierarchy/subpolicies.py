@@ -38,7 +38,7 @@ class SpacesEnv(gym.Env):
 def default_subpolicy_kwargs(action_space: spaces.Space) -> dict[str, Any]:
     """The paper's defaults (section 5.1): Adam lr 1e-3, batch 128, buffers of 50K, targets every 2,000 steps."""
     kwargs: dict[str, Any] = dict(
-        learning_rate=1e-3, buffer_size=50_000, learning_starts=500, batch_size=128, gamma=0.99,
+        learning_rate=1e-3, buffer_size=50_000, learning_starts=500, batch_size=128, gamma=0.99, train_freq=1,
         # fused Adam: one kernel per update instead of one per tensor, ~1 ms less per update on a CPU
         policy_kwargs=dict(net_arch=[256, 256], optimizer_kwargs=dict(fused=True)),
     )
@@ -56,12 +56,20 @@ class Subpolicy:
 
     :param model: the SB3 off-policy model (its ``learn`` is never called)
     :param exploration_steps: own steps over which epsilon decays (discrete) or the noise is kept (continuous)
-    :param train_freq: a gradient step every ``train_freq`` own steps (1 in the paper)
+    :param train_freq: ``gradient_steps`` gradient steps every ``train_freq`` own steps (default: the model's
+        own ``train_freq`` and ``gradient_steps``, counted in steps; 1 and 1 in the paper)
     """
 
-    def __init__(self, model: OffPolicyAlgorithm, exploration_steps: int, train_freq: int = 1) -> None:
+    def __init__(self, model: OffPolicyAlgorithm, exploration_steps: int, train_freq: Optional[int] = None) -> None:
         self.model = model
         self.exploration_steps = exploration_steps
+        if train_freq is None:
+            if model.train_freq.unit.value != "step":
+                raise ValueError(f"A subpolicy's train_freq counts its own steps, got the unit {model.train_freq.unit.value!r}")
+            train_freq = model.train_freq.frequency
+        if train_freq < 1 or model.gradient_steps < 1:
+            raise ValueError(f"A subpolicy needs train_freq >= 1 and gradient_steps >= 1, got {train_freq} and "
+                             f"{model.gradient_steps}")
         self.train_freq = train_freq
         self.num_steps = 0
         self.successes = 0
@@ -111,7 +119,7 @@ class Subpolicy:
         model._current_progress_remaining = max(0.0, 1.0 - self.num_steps / self.exploration_steps)
         ready = model.replay_buffer.size() >= max(model.learning_starts, model.batch_size)  # type: ignore[union-attr]
         if ready and self.num_steps % self.train_freq == 0:
-            model.train(gradient_steps=1, batch_size=model.batch_size)
+            model.train(gradient_steps=model.gradient_steps, batch_size=model.batch_size)
         if self._discrete:
             model._on_step()  # target network every target_update_interval steps, epsilon schedule
 
