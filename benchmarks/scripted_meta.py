@@ -68,7 +68,7 @@ def main() -> None:
     model.learn(args.steps)
     env = wrap_env(gym.make(args.env))
     result = dict(
-        env=args.env, seed=args.seed, steps=model.num_timesteps,
+        env=args.env, seed=args.seed, steps=model.num_timesteps, hhp_kwargs=json.loads(args.hhp_kwargs),
         hhp_deterministic=evaluate(model, env, args.episodes, True, 20_000)["success_rate"],
         hhp_stochastic=evaluate(model, env, args.episodes, True, 20_000, deterministic=False)["success_rate"],
         scripted_meta_stochastic=scripted_meta(model, args.env, args.episodes, deterministic=False),

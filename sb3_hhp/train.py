@@ -198,6 +198,7 @@ def sample_hhp_params(trial: Any, n_actions: int, n_envs: int, additional_args: 
         "beta": trial.suggest_float("beta", 0.0, 1.0),
         "alpha": trial.suggest_float("alpha", 0.01, 2.0, log=True),
         "learning_rate": trial.suggest_float("learning_rate", 1e-5, 3e-3, log=True),
+        "train_shared": trial.suggest_categorical("train_shared", [False, True]),
     }
     if hyperparams["query_mode"] == "fixed":  # the adaptive mode sets its own threshold
         hyperparams["t_qry"] = trial.suggest_float("t_qry", 0.02, 0.5)

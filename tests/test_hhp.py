@@ -311,6 +311,7 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
         (dict(env=EMPTY, dropout=1.0), r"dropout must be in \[0, 1\), got 1.0"),
         (dict(env=EMPTY, discovery="none"), "subgoals="),
         (dict(env=EMPTY, discovery="everything"), "discovery must be"),
+        (dict(env=EMPTY, share_experience=False, train_shared=True), "needs share_experience=True"),
     ],
 )
 def test_bad_arguments_raise_clear_errors(kwargs: dict, match: str) -> None:
@@ -406,6 +407,28 @@ def test_shared_experience_is_relabelled_with_each_subgoals_eq5_reward() -> None
         expected = 1.0 if reached else (-1.0 if (terminated and last) else 0.0)
         assert other.rewards[index, 0] == pytest.approx(expected)
         assert bool(other.dones[index, 0]) == (reached or (terminated and last))
+
+
+@pytest.mark.parametrize("train_shared", [False, True])
+def test_train_shared_gives_every_subpolicy_its_gradient_steps(train_shared: bool) -> None:
+    """Without ``train_shared`` only the acting subpolicy learns from a step; with it, every subpolicy counts
+    the shared step as a learning tick and updates at its own train_freq."""
+    kwargs = {**TINY.get("subpolicy_kwargs", {}), "train_freq": 2, "learning_starts": 1, "batch_size": 4}
+    model = make_model(EMPTY, use_curiosity=False, subpolicy_kwargs=kwargs, train_shared=train_shared)
+    model.learn(600)
+    hierarchy = model.hierarchy
+    assert hierarchy.n_subgoals >= 2
+    hierarchy.reset(seed=3)
+    before = [(sub.num_ticks, sub.model._n_updates) for sub in model.subpolicies.policies]
+    _, _, _, _, info = hierarchy.step(0)
+    steps = info["primitive_steps"]
+    for goal_id, sub in enumerate(model.subpolicies.policies):
+        ticks, updates = before[goal_id]
+        if goal_id == 0 or train_shared:
+            assert sub.num_ticks == ticks + steps
+            assert sub.model._n_updates == updates + (ticks + steps) // 2 - ticks // 2
+        else:
+            assert (sub.num_ticks, sub.model._n_updates) == (ticks, updates)
 
 
 def test_relabelled_step_at_the_time_limit_is_a_timeout() -> None:

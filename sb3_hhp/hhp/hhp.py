@@ -101,6 +101,8 @@ class HhP(DoubleDQN):
     :param oracle_kwargs: arguments of the oracle built from a name
     :param n_opt: meta-controller gradient steps after each episode (N_opt = 4)
     :param share_experience: every transition also trains (off-policy) the other subpolicies, relabelled with their rewards
+    :param train_shared: with ``share_experience``, every subpolicy takes its gradient steps on every primitive
+        step (at its own ``train_freq``), not only while it acts (see the README's Design)
     :param center_bonus: centre the preference bonus over the sub-goals of each state (see the README's Design)
     :param record_images: render states for people (default: only when the oracle is a person)
     Other parameters are those of :class:`~sb3_hhp.dqn.DoubleDQN` (the meta-controller); the meta
@@ -146,6 +148,7 @@ class HhP(DoubleDQN):
         oracle_kwargs: Optional[dict[str, Any]] = None,
         n_opt: int = 4,
         share_experience: bool = True,
+        train_shared: bool = False,
         center_bonus: bool = True,
         record_images: Optional[bool] = None,
         learning_rate: Union[float, Schedule] = 1e-3,
@@ -181,6 +184,8 @@ class HhP(DoubleDQN):
             raise ValueError("discovery='none' needs sub-goals handed in with subgoals=[obs, ...]")
         if n_opt < 1:
             raise ValueError(f"n_opt must be >= 1, got {n_opt}")
+        if train_shared and not share_experience:
+            raise ValueError("train_shared=True trains subpolicies on shared experience: it needs share_experience=True")
         if not 0.0 <= dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
         self.oracle_spec = oracle
@@ -215,6 +220,7 @@ class HhP(DoubleDQN):
         self.n_opt = n_opt
         self.center_bonus = center_bonus
         self.share_experience = share_experience
+        self.train_shared = train_shared
         self.record_images = record_images
         self.subpolicy_policy = policy if isinstance(policy, str) else "MlpPolicy"
 
@@ -297,6 +303,7 @@ class HhP(DoubleDQN):
         hierarchy.rnd = self.rnd
         hierarchy.record_images = bool(self.record_images)
         hierarchy.share_experience = self.share_experience
+        hierarchy.train_shared = self.train_shared
         if hierarchy.n_subgoals == 0 and not hierarchy.subgoals:
             for goal_obs in self.initial_subgoals:
                 self.add_subgoal(self.goal_space.key(goal_obs), goal_obs, None, source="user")

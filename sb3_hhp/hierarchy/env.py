@@ -66,7 +66,10 @@ class HierarchicalEnv(gym.Env):
     :param capacity: initial size of the action space (grows by doubling)
     :param record_images: render s_t at each choice (needed by people and the gallery)
     :param share_experience: also store every transition in the other subpolicies' buffers with their
-        own rewards (intra-option learning; the active subpolicy alone trains on the step)
+        own rewards (intra-option learning)
+    :param train_shared: with ``share_experience``, every subpolicy also counts a shared step as a learning
+        tick (gradient steps at its own ``train_freq``), not only the active one; costs a gradient step per
+        sub-goal every ``train_freq`` primitive steps
     """
 
     metadata = {"render_modes": []}
@@ -82,6 +85,7 @@ class HierarchicalEnv(gym.Env):
         capacity: int = 16,
         record_images: bool = False,
         share_experience: bool = True,
+        train_shared: bool = False,
     ) -> None:
         if max_subgoal_steps < 1:
             raise ValueError(f"max_subgoal_steps must be >= 1, got {max_subgoal_steps}")
@@ -97,6 +101,7 @@ class HierarchicalEnv(gym.Env):
         self.max_subgoal_steps = max_subgoal_steps
         self.record_images = record_images
         self.share_experience = share_experience
+        self.train_shared = train_shared
         self.observation_space = env.observation_space
         self.action_space = spaces.Discrete(capacity)
         self.subgoals: list[Subgoal] = []
@@ -184,7 +189,7 @@ class HierarchicalEnv(gym.Env):
                  intrinsic: float, terminated: bool, truncated: bool = False) -> None:
         """Intra-option learning: the transition is experience for every other sub-goal too, with that
         sub-goal's own pseudo-reward (eq. 5) and the same curiosity bonus (eq. 6); only the active
-        subpolicy takes a gradient step. The rewards of all sub-goals come from one vectorised call. An
+        subpolicy takes a gradient step, unless ``train_shared``. The rewards of all sub-goals come from one vectorised call. An
         episode cut by its time limit is stored as a timeout: bootstrapped, but no n-step return runs on
         into the next episode."""
         done = np.array([self.goal_space.achieved(key, goal.key) for goal in self.subgoals])
@@ -193,6 +198,8 @@ class HierarchicalEnv(gym.Env):
         for goal_id, other in enumerate(self.subpolicies.policies):
             if goal_id != active:
                 other.store(obs, next_obs, action, float(rewards[goal_id]), bool(terminal[goal_id]), timeout=truncated)
+                if self.train_shared:
+                    other.learn_step()
 
     def _explore_randomly(self) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Before the first sub-goal exists: one random-action episode whose states seed G (Algorithm 1 line 5)."""

@@ -71,7 +71,8 @@ class Subpolicy:
             raise ValueError(f"A subpolicy needs train_freq >= 1 and gradient_steps >= 1, got {train_freq} and "
                              f"{model.gradient_steps}")
         self.train_freq = train_freq
-        self.num_steps = 0
+        self.num_steps = 0  # own steps (acting for its sub-goal)
+        self.num_ticks = 0  # learning ticks (own steps, plus shared steps with train_shared)
         self.successes = 0
         self.attempts = 0
         self.recent: list[bool] = []
@@ -117,11 +118,19 @@ class Subpolicy:
         self.num_steps += 1
         model.num_timesteps = self.num_steps
         model._current_progress_remaining = max(0.0, 1.0 - self.num_steps / self.exploration_steps)
+        self.learn_step()
+
+    def learn_step(self) -> None:
+        """One learning tick: ``gradient_steps`` gradient steps every ``train_freq`` ticks once the buffer is
+        ready, and (discrete) the target network every ``target_update_interval`` ticks. A tick is an own step,
+        or with ``train_shared`` any primitive step whose transition was stored for this subpolicy."""
+        model = self.model
+        self.num_ticks += 1
         ready = model.replay_buffer.size() >= max(model.learning_starts, model.batch_size)  # type: ignore[union-attr]
-        if ready and self.num_steps % self.train_freq == 0:
+        if ready and self.num_ticks % self.train_freq == 0:
             model.train(gradient_steps=model.gradient_steps, batch_size=model.batch_size)
         if self._discrete:
-            model._on_step()  # target network every target_update_interval steps, epsilon schedule
+            model._on_step()  # target network every target_update_interval ticks, epsilon from own steps
 
     def record_outcome(self, success: bool, window: int = 100) -> None:
         self.attempts += 1
@@ -207,6 +216,7 @@ class SubpolicySet:
                 "policy": sub.model.policy.state_dict(),
                 "optimizers": [opt.state_dict() for opt in _optimizers(sub.model)],
                 "num_steps": sub.num_steps,
+                "num_ticks": sub.num_ticks,
                 "n_calls": getattr(sub.model, "_n_calls", 0),
                 "successes": sub.successes,
                 "attempts": sub.attempts,
@@ -223,6 +233,7 @@ class SubpolicySet:
             for opt, opt_state in zip(_optimizers(sub.model), state["optimizers"]):
                 opt.load_state_dict(opt_state)
             sub.num_steps = state["num_steps"]
+            sub.num_ticks = state.get("num_ticks", sub.num_steps)  # saves before train_shared: ticks were own steps
             sub.model.num_timesteps = sub.num_steps
             sub.model._n_calls = state["n_calls"]
             sub.model._current_progress_remaining = max(0.0, 1.0 - sub.num_steps / self.exploration_steps)
