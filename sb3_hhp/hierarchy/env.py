@@ -189,9 +189,9 @@ class HierarchicalEnv(gym.Env):
                  intrinsic: float, terminated: bool, truncated: bool = False) -> None:
         """Intra-option learning: the transition is experience for every other sub-goal too, with that
         sub-goal's own pseudo-reward (eq. 5) and the same curiosity bonus (eq. 6); only the active
-        subpolicy takes a gradient step, unless ``train_shared``. The rewards of all sub-goals come from one vectorised call. An
-        episode cut by its time limit is stored as a timeout: bootstrapped, but no n-step return runs on
-        into the next episode."""
+        subpolicy takes a gradient step, unless ``train_shared``. The rewards of all sub-goals come from
+        one vectorised call. An episode cut by its time limit is stored as a timeout: bootstrapped, but no
+        n-step return runs on into the next episode."""
         done = np.array([self.goal_space.achieved(key, goal.key) for goal in self.subgoals])
         terminal = done | terminated
         rewards = subpolicy_reward(pseudo_reward(done, terminal), intrinsic, self.alpha)  # eq. 5, 6 for every g

@@ -56,21 +56,19 @@ class Subpolicy:
 
     :param model: the SB3 off-policy model (its ``learn`` is never called)
     :param exploration_steps: own steps over which epsilon decays (discrete) or the noise is kept (continuous)
-    :param train_freq: ``gradient_steps`` gradient steps every ``train_freq`` own steps (default: the model's
-        own ``train_freq`` and ``gradient_steps``, counted in steps; 1 and 1 in the paper)
+    The model's own ``train_freq`` (counted in steps) and ``gradient_steps`` say how often it learns
+    (1 and 1 in the paper).
     """
 
-    def __init__(self, model: OffPolicyAlgorithm, exploration_steps: int, train_freq: Optional[int] = None) -> None:
+    def __init__(self, model: OffPolicyAlgorithm, exploration_steps: int) -> None:
         self.model = model
         self.exploration_steps = exploration_steps
-        if train_freq is None:
-            if model.train_freq.unit.value != "step":
-                raise ValueError(f"A subpolicy's train_freq counts its own steps, got the unit {model.train_freq.unit.value!r}")
-            train_freq = model.train_freq.frequency
-        if train_freq < 1 or model.gradient_steps < 1:
-            raise ValueError(f"A subpolicy needs train_freq >= 1 and gradient_steps >= 1, got {train_freq} and "
+        if model.train_freq.unit.value != "step":
+            raise ValueError(f"A subpolicy's train_freq counts its own steps, got the unit {model.train_freq.unit.value!r}")
+        self.train_freq = model.train_freq.frequency
+        if self.train_freq < 1 or model.gradient_steps < 1:
+            raise ValueError(f"A subpolicy needs train_freq >= 1 and gradient_steps >= 1, got {self.train_freq} and "
                              f"{model.gradient_steps}")
-        self.train_freq = train_freq
         self.num_steps = 0  # own steps (acting for its sub-goal)
         self.num_ticks = 0  # learning ticks (own steps, plus shared steps with train_shared)
         self.successes = 0
