@@ -56,12 +56,12 @@ class PreferenceQueryCallback(BaseCallback):
         model = self.model
         if model.query_selector.remaining == 0 or len(model.subgoals) < 2:
             return
-        confidences = model.predictor.confidence(states, goal_obs[goals])  # line 25, eq. 4
+        confidences = model.predictor.confidence(model.predictor_inputs(states), model.predictor_inputs(goal_obs[goals]))  # line 25, eq. 4
         model.last_confidences = confidences
         with th.no_grad():
             obs_tensor, _ = model.policy.obs_to_tensor(states)
             q_values = model.q_net(obs_tensor).cpu().numpy()
-        q_values[:, ~model.valid_actions] = -np.inf
+        q_values[~np.broadcast_to(model.action_mask(states), q_values.shape)] = -np.inf  # g2 among the choosable sub-goals
         selected = model.query_selector.select(confidences, goals, q_values, num_timesteps=model.num_timesteps)
         if not selected:
             return
@@ -101,7 +101,7 @@ class PreferenceQueryCallback(BaseCallback):
             if model.store.get_answer(answer.query_id) is None:
                 model.store.add_answer(answer.query_id, answer.label, answer.annotator, answer.answered_at)
             model.consumed_query_ids.add(answer.query_id)
-            new_labels += int(model.predictor.add(query.state, query.goal1_obs, query.goal2_obs, answer.label))
+            new_labels += int(model.add_preference(query, answer.label))
         if new_labels:  # line 27: 4 epochs on R
             model.last_predictor_stats = model.predictor.train()
 

@@ -143,6 +143,31 @@ def test_per_n_step_returns_by_hand() -> None:
         np.testing.assert_allclose(drawn[k], expected, rtol=1e-5, err_msg=f"transition {k}")
 
 
+def test_per_n_step_returns_stop_at_off_policy_transitions() -> None:
+    """A transition stored with info["off_policy"] (another policy acted) is a one-step transition, and an
+    own transition's n-step return ends before the first off-policy one."""
+    gamma, n = 0.5, 4
+    buffer = PrioritizedReplayBuffer(32, spaces.Box(-np.inf, np.inf, (1,), np.float32), spaces.Discrete(2),
+                                     device="cpu", n_steps=n, gamma=gamma)
+    off_policy = {3, 4, 8}
+    for k in range(12):
+        buffer.add(np.array([[k]], np.float32), np.array([[k + 100]], np.float32), np.zeros(1),
+                   np.array([2.0**k], np.float32), np.array([False]), [{"off_policy": k in off_policy}])
+    returns, last_rows, discounts = buffer._n_step_returns(np.arange(12), np.zeros(12, dtype=int), None)
+    for k in range(12):
+        m = 1
+        if k not in off_policy:
+            while m < n and (k + m) not in off_policy and k + m <= 11:
+                m += 1
+        assert last_rows[k] == k + m - 1, f"transition {k}"
+        assert returns[k, 0] == pytest.approx(sum(gamma**j * 2.0 ** (k + j) for j in range(m))), f"transition {k}"
+        assert discounts[k, 0] == pytest.approx(gamma**m), f"transition {k}"
+    # by hand: 0 sums 0..2 (stops before 3), 3 and 4 stand alone, 5 sums 5..7, 9 sums 9..11 (the newest)
+    assert list(last_rows[[0, 3, 4, 5, 9]]) == [2, 3, 4, 7, 11]
+    buffer.reset()
+    assert not buffer.off_policy.any()
+
+
 def test_per_n_steps_invalid_arguments() -> None:
     space, actions = spaces.Box(-1, 1, (1,), np.float32), spaces.Discrete(2)
     with pytest.raises(ValueError, match="n_steps"):
@@ -418,6 +443,52 @@ def test_valid_actions_restrict_predict_and_exploration() -> None:
     model.learn(40)
     stored = model.replay_buffer.actions[: model.replay_buffer.pos, 0, 0].astype(int)
     assert mask[stored].all()
+
+
+class _EvenOddMaskDQN(DoubleDQN):
+    """Allows only actions of the parity of the observation, state by state."""
+
+    def action_mask(self, observations):
+        obs = np.asarray(observations).reshape(-1)
+        return (np.arange(int(self.action_space.n))[None, :] % 2) == (obs[:, None].astype(int) % 2)
+
+
+def test_state_action_mask_restricts_predict_exploration_warmup_and_target() -> None:
+    model = _EvenOddMaskDQN("MlpPolicy", IdentityEnv(dim=4), learning_starts=60, batch_size=16, train_freq=1,
+                            gamma=0.9, policy_kwargs=dict(net_arch=[16]), seed=0, device="cpu", buffer_size=500)
+    observations = np.array([0, 1, 2, 3])
+    greedy, _ = model.predict(observations, deterministic=True)
+    assert (greedy % 2 == observations % 2).all()
+    model.exploration_rate = 1.0
+    explored = np.stack([model.predict(observations)[0] for _ in range(40)])
+    assert (explored % 2 == observations % 2).all()
+    assert set(explored[:, 0].tolist()) == {0, 2}
+    single, _ = model.predict(np.array(3))
+    assert int(single) % 2 == 1
+    model.learn(50)  # warm-up only: random actions within each state's mask
+    stored_obs = model.replay_buffer.observations[: model.replay_buffer.pos, 0, 0].astype(int)
+    stored_actions = model.replay_buffer.actions[: model.replay_buffer.pos, 0, 0].astype(int)
+    assert (stored_actions % 2 == stored_obs % 2).all()
+    # the TD target takes the max over each next state's own mask
+    batches = _record_batches(model)
+    seen = []
+    original = double_q_target
+
+    import sb3_hhp.dqn.dqn as dqn_module
+
+    def recording_target(*args, valid_actions=None, **kwargs):
+        seen.append(valid_actions)
+        return original(*args, valid_actions=valid_actions, **kwargs)
+
+    dqn_module.double_q_target = recording_target
+    try:
+        model.learn(20, reset_num_timesteps=False)
+    finally:
+        dqn_module.double_q_target = original
+    assert seen and batches
+    next_obs = batches[-1].next_observations.numpy().reshape(-1).astype(int)
+    expected = (np.arange(4)[None, :] % 2) == (next_obs[:, None] % 2)
+    np.testing.assert_array_equal(seen[-1].numpy(), expected)
 
 
 def test_valid_actions_validation() -> None:

@@ -258,3 +258,50 @@ def test_plan_of_a_state_that_needs_the_key_in_hand() -> None:
     assert all(key[0] == KEY for key in keys[:-1])  # never drops the key on a shortest plan
     assert keys.index(CARRYING_KEY_FACING_LOCKED_DOOR) < keys.index(CARRYING_KEY_FACING_OPEN_DOOR)
     env.close()
+
+
+def test_choosable_subgoals_are_unreached_milestones() -> None:
+    """The meta-controller's mask: a sub-goal already achieved is not choosable, "facing a wall / an empty cell"
+    only when reaching it changes what is carried, objects one interacts with and success always."""
+    space = MiniGridGoalSpace()
+    key_, wall, empty, door, goal = (OBJECT_TO_IDX[name] for name in ("key", "wall", "empty", "door", "goal"))
+    facing_key = (empty, key_, 0)
+    assert not space.choosable(facing_key, facing_key)
+    assert space.choosable(facing_key, (key_, empty, 0))  # picking the key up
+    assert space.choosable(facing_key, (key_, wall, 0))
+    assert not space.choosable(facing_key, (empty, wall, 0))
+    assert not space.choosable(facing_key, (empty, empty, 0))
+    assert space.choosable(facing_key, (key_, door, 2))
+    assert space.choosable(facing_key, (empty, goal, 0))
+    assert space.choosable(facing_key, SUCCESS_KEY)
+    carrying = (key_, wall, 0)
+    assert not space.choosable(carrying, (key_, empty, 0))  # already carrying it: just a turn
+    assert space.choosable(carrying, (empty, empty, 0))  # dropping it
+    assert not space.choosable(SUCCESS_KEY, SUCCESS_KEY)
+    assert space.choosable(SUCCESS_KEY, facing_key)
+
+
+def test_features_are_one_hots_of_carried_front_and_the_objects_present() -> None:
+    """The predictor's description of a state: carried object, object in front, its state, then the (object,
+    state) pairs present anywhere; two layouts of the same situation get the same description."""
+    space = MiniGridGoalSpace()
+    n_obj, n_state = len(OBJECT_TO_IDX), len(STATE_TO_IDX)
+    obs = np.zeros((5, 5, 3), dtype=np.uint8)
+    obs[..., 0] = OBJECT_TO_IDX["empty"]
+    obs[2, 2] = (OBJECT_TO_IDX["key"], 4, 0)  # carrying a key
+    obs[2, 1] = (OBJECT_TO_IDX["door"], 4, STATE_TO_IDX["locked"])  # facing a locked door
+    obs[0, 4] = (OBJECT_TO_IDX["goal"], 1, 0)
+    features = space.features(obs)
+    assert features.shape == (1, 2 * n_obj + n_state + n_obj * n_state) and features.dtype == np.float32
+    expected = np.zeros(features.shape[1], dtype=np.float32)
+    expected[OBJECT_TO_IDX["key"]] = 1
+    expected[n_obj + OBJECT_TO_IDX["door"]] = 1
+    expected[2 * n_obj + STATE_TO_IDX["locked"]] = 1
+    present = 2 * n_obj + n_state
+    for name, state in (("empty", 0), ("key", 0), ("door", STATE_TO_IDX["locked"]), ("goal", 0)):
+        expected[present + OBJECT_TO_IDX[name] * n_state + state] = 1
+    np.testing.assert_array_equal(features[0], expected)
+    moved = obs.copy()
+    moved[0, 4], moved[4, 0] = obs[4, 0], obs[0, 4]  # the goal elsewhere: same description
+    np.testing.assert_array_equal(space.features(np.stack([obs, moved])), np.repeat(features, 2, axis=0))
+    assert MiniGridGoalSpace(use_color=True).features(obs).shape[1] == features.shape[1] + 2 * len(COLORS)

@@ -123,11 +123,12 @@ def test_predict_keeps_the_subgoal_until_episode_start_or_give_up(trained: HhP) 
     assert goals[0] == chosen[0] and steps[0] == 1
     # the state passed in is not modified in place
     assert state[0][0] == other and state[1][0] == 5
-    # a greedy meta-controller does not take again the sub-goal that just gave up: its best other one
+    # a greedy meta-controller does not take again the sub-goal that just gave up: its best other choosable one
     failed = (np.array([chosen[0]]), np.array([trained.max_subgoal_steps]))
     _, (goals, _) = trained.predict(obs, state=failed, episode_start=np.array([False]), deterministic=True)
     with th.no_grad():
         q_values = trained.q_net(trained.policy.obs_to_tensor(obs)[0]).cpu().numpy()[0, : len(trained.subgoals)]
+    q_values[~trained.action_mask(obs)[0, : len(trained.subgoals)]] = -np.inf  # among the choosable sub-goals
     q_values[chosen[0]] = -np.inf
     assert goals[0] != chosen[0] and goals[0] == int(np.argmax(q_values))
 
@@ -191,9 +192,10 @@ def test_meta_reward_is_eq3_with_the_predictor_bonus(trained: HhP) -> None:
     replay = trained.replay_buffer.sample(16)
     goals = replay.actions.long().flatten().numpy()
     states = replay.observations.numpy().astype(np.uint8)
-    goal_obs = trained.goal_obs
+    goal_obs = trained.goal_space.features(trained.goal_obs)  # the predictor reads the goal space's features
+    assert trained.predictor_input == "auto" and goal_obs.ndim == 2
     # p_hat(s, g') for every sub-goal g', one state at a time
-    scores = np.stack([trained.predictor.score(state[None], goal_obs) for state in states])
+    scores = np.stack([trained.predictor.score(trained.goal_space.features(state), goal_obs) for state in states])
     chosen = scores[np.arange(len(goals)), goals]
     r_e = replay.rewards.numpy().flatten()
     beta, sigma = trained.beta, trained.return_normalizer.sigma
@@ -226,7 +228,7 @@ def _assert_same_model(a: HhP, b: HhP, obs: np.ndarray) -> None:
     np.testing.assert_array_equal(a.valid_actions, b.valid_actions)
     assert len(a.predictor) == len(b.predictor)
     goal_obs = a.goal_obs
-    pairs = np.repeat(obs, len(goal_obs), 0), np.tile(goal_obs, (len(obs), 1, 1, 1))
+    pairs = a.predictor_inputs(np.repeat(obs, len(goal_obs), 0)), a.predictor_inputs(np.tile(goal_obs, (len(obs), 1, 1, 1)))
     np.testing.assert_allclose(a.predictor.score(*pairs), b.predictor.score(*pairs), rtol=1e-6)
     np.testing.assert_allclose(a.rnd.prediction_error(obs), b.rnd.prediction_error(obs), rtol=1e-6)
     assert len(a.rnd.memory) == len(b.rnd.memory)
@@ -407,6 +409,9 @@ def test_shared_experience_is_relabelled_with_each_subgoals_eq5_reward() -> None
         expected = 1.0 if reached else (-1.0 if (terminated and last) else 0.0)
         assert other.rewards[index, 0] == pytest.approx(expected)
         assert bool(other.dones[index, 0]) == (reached or (terminated and last))
+        assert other.off_policy[index, 0]  # another subpolicy acted: one-step only in this buffer
+    own = model.subpolicies[0].model.replay_buffer
+    assert not own.off_policy[(own.pos - steps + np.arange(steps)) % own.buffer_size, 0].any()
 
 
 @pytest.mark.parametrize("train_shared", [False, True])
@@ -492,6 +497,64 @@ def test_no_discovery_uses_only_the_subgoals_handed_in() -> None:
     # a sub-goal that is reached is renewed at once: state (0, 3) in the state of sub-goal 0
     _, (goals, steps) = model.predict(given[0][None], state=(np.array([0]), np.array([3])), deterministic=True)
     assert steps[0] == 1 and model.valid_actions[goals[0]]
+
+
+def test_meta_controller_chooses_only_choosable_subgoals() -> None:
+    """With mask_subgoals (the default) the meta-controller never picks a sub-goal that the goal space rules
+    out in the state (already achieved; on MiniGrid, not a milestone), unless none is choosable there: in
+    training (warm-up, exploration and greedy choices alike) and in predict."""
+    model = make_model(DOORKEY, learning_starts=100)
+    assert model.mask_subgoals
+    hierarchy, space = model.hierarchy, model.goal_space
+    choices, step = [], hierarchy.step
+
+    def checked_step(action):
+        if hierarchy.subgoals:
+            key = space.key(hierarchy._obs)
+            allowed = [space.choosable(key, goal.key) for goal in hierarchy.subgoals]
+            choices.append((any(allowed), allowed[int(action)]))
+        return step(action)
+
+    hierarchy.step = checked_step
+    model.learn(1_500)
+    assert len(model.subgoals) >= 3
+    assert sum(any_allowed for any_allowed, _ in choices) > 10
+    assert all(chosen for any_allowed, chosen in choices if any_allowed)
+    goal_keys = [goal.key for goal in model.subgoals]
+    states = observations()
+    mask = model.action_mask(states)
+    expected = np.array([[space.choosable(space.key(obs), key) for key in goal_keys] for obs in states])
+    expected[~expected.any(axis=1)] = True  # a state where nothing is choosable keeps every sub-goal
+    np.testing.assert_array_equal(mask[:, : len(goal_keys)], expected)
+    assert not mask[:, len(goal_keys):].any()
+    for obs, allowed in zip(states, mask):
+        for deterministic in (True, False):
+            _, (goals, _) = model.predict(obs, deterministic=deterministic)
+            assert allowed[goals[0]]
+    unmasked = make_model(DOORKEY, mask_subgoals=False)
+    unmasked.learn(300)
+    assert unmasked.action_mask(states) is unmasked.valid_actions
+
+
+def test_predictor_reads_goal_space_features_or_observations() -> None:
+    """predictor_input: "auto" (features when the goal space has them), "observation", or "features" (an error
+    that names the fix when the goal space has none)."""
+    states = observations()
+    featured = make_model(DOORKEY)
+    assert featured.predictor.observation_space.shape == featured.goal_space.features(states).shape[1:]
+    np.testing.assert_array_equal(featured.predictor_inputs(states), featured.goal_space.features(states))
+    raw = make_model(DOORKEY, predictor_input="observation")
+    assert raw.predictor.observation_space == raw.primitive_observation_space
+    np.testing.assert_array_equal(raw.predictor_inputs(states), states)
+
+    class NoFeatures(MiniGridGoalSpace):
+        def features(self, obs):
+            return None
+
+    with pytest.raises(ValueError, match="predictor_input='observation'"):
+        make_model(DOORKEY, goal_space=NoFeatures(), predictor_input="features")
+    with pytest.raises(ValueError, match="predictor_input"):
+        make_model(DOORKEY, predictor_input="pixels")
 
 
 # ---------------------------------------------------------------------------- resume

@@ -58,7 +58,10 @@ class PrioritizedReplayBuffer(ReplayBuffer):
     :param epsilon: Constant ``> 0`` added to ``|delta|`` so that no transition has priority 0.
     :param n_steps: Sample n-step returns ``sum_{k<m} gamma^k r_{t+k}`` up to the first terminal,
         timeout or newest transition (``m <= n_steps``), with ``s_{t+m}`` as next observation and
-        ``gamma^m`` as the per-sample discount of the bootstrap (1: one-step transitions).
+        ``gamma^m`` as the per-sample discount of the bootstrap (1: one-step transitions). A transition
+        added with ``info["off_policy"] = True`` (another policy's behaviour, relabelled) is always a one-step
+        transition, and an n-step return stops before it: without importance weights, only one-step
+        targets are sound on another policy's actions.
     :param gamma: Discount of the n-step returns, in ``[0, 1]``.
     """
 
@@ -113,6 +116,7 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         self.n_steps = int(n_steps)
         self.gamma = float(gamma)
         self.tree = SumTree(self.buffer_size * self.n_envs)
+        self.off_policy = np.zeros((self.buffer_size, self.n_envs), dtype=bool)
         # Seeded from the global NumPy state, which SB3's `set_random_seed` has fixed beforehand.
         self._rng = np.random.default_rng(np.random.randint(0, 2**31 - 1))
 
@@ -135,6 +139,7 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         Arguments as in SB3's ``ReplayBuffer.add``.
         """
         new_indices = self._row_indices(self.pos)
+        self.off_policy[self.pos] = [bool(info.get("off_policy", False)) for info in infos]
         super().add(obs, next_obs, action, reward, done, infos)
         max_priority = self.tree.max_priority  # already p^alpha
         self.tree.update(new_indices, max_priority if max_priority > 0 else 1.0)
@@ -148,6 +153,7 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         super().reset()
         if hasattr(self, "tree"):
             self.tree = SumTree(self.tree.capacity)
+            self.off_policy[:] = False
 
     def update_priorities(self, indices: np.ndarray, td_errors: np.ndarray | th.Tensor) -> None:
         """
@@ -216,7 +222,8 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         self, batch_inds: np.ndarray, env_inds: np.ndarray, env: VecNormalize | None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The n-step return from each drawn transition: it runs over the transitions stored after it
-        (same env) and stops at the first terminal or timeout, at the newest transition, or after n.
+        (same env) and stops at the first terminal or timeout, at the newest transition, after n, or before
+        an off-policy transition; an off-policy transition is a one-step return.
 
         :return: the returns ``(B, 1)``, the buffer row of the last transition summed (its next
             observation and done flag close the return), and the bootstrap discounts ``gamma^m`` ``(B, 1)``
@@ -226,6 +233,9 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         cols = env_inds[:, None]
         newer = (self.pos - 1 - batch_inds) % self.buffer_size  # transitions of this env stored after the drawn one
         stop = self.dones[rows, cols].astype(bool) | self.timeouts[rows, cols].astype(bool) | (steps >= newer[:, None])
+        off_policy = self.off_policy[rows, cols]
+        next_off_policy = self.off_policy[(rows + 1) % self.buffer_size, cols]
+        stop |= off_policy | next_off_policy  # a relabelled transition stands alone and ends an own return
         stop[:, -1] = True
         last = stop.argmax(axis=1)  # m - 1: the index of the last transition summed
         mask = steps[None, :] <= last[:, None]

@@ -7,7 +7,8 @@ adds the three hooks the hierarchical algorithm needs:
 - :meth:`DoubleDQN._rewards`: the reward column used in the TD target (a subclass may recompute
   rewards at sample time, e.g. the meta-reward of eq. 3 from the current preference predictor);
 - :attr:`DoubleDQN.valid_actions`: a boolean mask over the discrete actions, honoured by the TD
-  target, by greedy action selection and by epsilon-greedy exploration;
+  target, by greedy action selection and by epsilon-greedy exploration; :meth:`DoubleDQN.action_mask`
+  may narrow it state by state;
 - :meth:`DoubleDQN.resize_action_space`: grow the discrete action space (a new sub-goal) while
   keeping every learnt Q-value.
 """
@@ -90,6 +91,8 @@ class DoubleDQN(DQN):
     - ``valid_actions``: ``None`` (every action valid) or a boolean array of shape ``(n_actions,)``;
       invalid actions are excluded from the target's argmax, from ``predict`` (greedy and
       epsilon-greedy) and from the random warm-up actions.
+    - ``action_mask(observations)``: the actions allowed in each state, shape ``(B, n_actions)`` (or
+      ``(n_actions,)`` for all); default ``valid_actions``. Used by the same three.
     - ``resize_action_space(n_actions)``: grow the discrete action space, keeping old Q-values.
 
     The importance weighting applies whenever the replay buffer is a ``PrioritizedReplayBuffer``.
@@ -235,19 +238,33 @@ class DoubleDQN(DQN):
         """
         return replay_data.rewards
 
-    def _valid_actions_tensor(self) -> th.Tensor | None:
-        if self._valid_actions is None:
-            return None
-        return th.as_tensor(self._valid_actions, device=self.device)
+    def action_mask(self, observations: np.ndarray | dict[str, np.ndarray]) -> np.ndarray | None:
+        """
+        The actions allowed in each state of a batch: a boolean array ``(B, n_actions)``, one mask
+        ``(n_actions,)`` for every state, or ``None`` (all actions). Default: :attr:`valid_actions`.
+        Override to rule out actions state by state; each row must allow at least one action.
 
-    def _random_actions(self, n: int) -> np.ndarray:
-        """``n`` actions drawn uniformly among the valid ones, with the action space's generator."""
+        :param observations: A batch of observations (NumPy, as stored in the replay buffer).
+        """
+        return self._valid_actions
+
+    def _valid_actions_tensor(self, observations: np.ndarray | dict[str, np.ndarray] | None = None) -> th.Tensor | None:
+        mask = self._valid_actions if observations is None else self.action_mask(observations)
+        if mask is None:
+            return None
+        return th.as_tensor(mask, device=self.device)
+
+    def _random_actions(self, n: int, mask: np.ndarray | None = None) -> np.ndarray:
+        """``n`` actions drawn uniformly among the allowed ones (``mask``: ``(n_actions,)`` or one row per
+        action; default :attr:`valid_actions`), with the action space's generator."""
         assert isinstance(self.action_space, spaces.Discrete)
-        if self._valid_actions is None:
-            choices = np.arange(int(self.action_space.n))
-        else:
-            choices = np.flatnonzero(self._valid_actions)
-        return self.action_space.np_random.choice(choices, size=n) + int(self.action_space.start)
+        mask = self._valid_actions if mask is None else mask
+        start, rng = int(self.action_space.start), self.action_space.np_random
+        if mask is None:
+            return rng.choice(int(self.action_space.n), size=n) + start
+        if mask.ndim == 1:
+            return rng.choice(np.flatnonzero(mask), size=n) + start
+        return np.array([rng.choice(np.flatnonzero(row)) for row in mask]) + start
 
     # --------------------------------------------------------------- training
 
@@ -257,6 +274,7 @@ class DoubleDQN(DQN):
         # Update learning rate according to schedule
         self._update_learning_rate(self.policy.optimizer)
         prioritized = isinstance(self.replay_buffer, PrioritizedReplayBuffer)
+        state_masks = type(self).action_mask is not DoubleDQN.action_mask  # else one mask for every state
         valid_actions = self._valid_actions_tensor()
 
         losses, td_errors_abs, weights_mean = [], [], []
@@ -265,6 +283,8 @@ class DoubleDQN(DQN):
             # For n-step replay, discount factor is gamma**n_steps (when no early termination)
             discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
 
+            if state_masks:
+                valid_actions = self._valid_actions_tensor(replay_data.next_observations.cpu().numpy())
             with th.no_grad():
                 next_q_target = self.q_net_target(replay_data.next_observations)
                 next_q_online = self.q_net(replay_data.next_observations) if self.double_q else next_q_target
@@ -325,19 +345,24 @@ class DoubleDQN(DQN):
         :param deterministic: Greedy actions only, no exploration.
         :return: The actions and ``state``.
         """
-        if self._valid_actions is None:
-            return super().predict(observation, state, episode_start, deterministic)
         vectorized = self.policy.is_vectorized_observation(observation)
+        if isinstance(observation, dict):
+            batch = observation if vectorized else {key: np.asarray(value)[None] for key, value in observation.items()}
+        else:
+            batch = observation if vectorized else np.asarray(observation)[None]
+        mask = self.action_mask(batch)
+        if mask is None:
+            return super().predict(observation, state, episode_start, deterministic)
         if not deterministic and np.random.rand() < self.exploration_rate:
             if vectorized:
                 first = observation[next(iter(observation.keys()))] if isinstance(observation, dict) else observation
-                return self._random_actions(first.shape[0]), state
-            return np.array(self._random_actions(1)[0]), state
+                return self._random_actions(first.shape[0], mask), state
+            return np.array(self._random_actions(1, mask)[0]), state
         self.policy.set_training_mode(False)
         obs_tensor, vectorized = self.policy.obs_to_tensor(observation)
         with th.no_grad():
             q_values = self.q_net(obs_tensor)
-        q_values = q_values.masked_fill(~self._valid_actions_tensor(), -th.inf)  # type: ignore[operator]
+        q_values = q_values.masked_fill(~th.as_tensor(mask, device=q_values.device), -th.inf)
         actions = q_values.argmax(dim=1).cpu().numpy() + int(self.action_space.start)  # type: ignore[attr-defined]
         if not vectorized:
             actions = actions.squeeze(axis=0)
@@ -349,10 +374,12 @@ class DoubleDQN(DQN):
         action_noise: Any = None,
         n_envs: int = 1,
     ) -> tuple[np.ndarray, np.ndarray]:
-        # Warm-up actions are uniform over the valid actions only; afterwards `predict` decides.
-        if self._valid_actions is not None and self.num_timesteps < learning_starts:
-            action = self._random_actions(n_envs)
-            return action, action
+        # Warm-up actions are uniform over the allowed actions only; afterwards `predict` decides.
+        if self.num_timesteps < learning_starts:
+            mask = self.action_mask(self._last_obs)
+            if mask is not None:
+                action = self._random_actions(n_envs, mask)
+                return action, action
         return super()._sample_action(learning_starts, action_noise, n_envs)
 
     # ------------------------------------------------------ growing the space

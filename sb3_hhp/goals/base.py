@@ -42,6 +42,18 @@ class GoalSpace(ABC):
         """``done(s, g)``: the state's key equals the sub-goal's key."""
         return key == goal_key
 
+    def choosable(self, key: Hashable, goal_key: Hashable) -> bool:
+        """Whether the meta-controller may choose ``goal_key`` in a state of key ``key`` (with
+        ``mask_subgoals``): not when it is already achieved there, since running its subpolicy would
+        only leave the sub-goal to come back to it. Domains may rule out more."""
+        return not self.achieved(key, goal_key)
+
+    def features(self, obs: np.ndarray) -> Optional[np.ndarray]:
+        """A compact description of a batch of observations ``(B, *obs_shape)`` as float vectors ``(B, F)``
+        that recurs across layouts, for the preference predictor (``HhP(predictor_input="auto")``);
+        None (the default): the predictor reads the observations themselves."""
+        return None
+
     def similarity(self, key: Hashable, obs: np.ndarray, goal_keys: Sequence[Hashable], goal_obs: np.ndarray) -> np.ndarray:
         """Similarity in [0, 1] of a candidate to every stored sub-goal (default: equal keys -> 1, else 0)."""
         return np.array([1.0 if key == other else 0.0 for other in goal_keys], dtype=np.float64)

@@ -20,7 +20,7 @@ from typing import Any, Optional
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from minigrid.core.constants import IDX_TO_OBJECT, OBJECT_TO_IDX, STATE_TO_IDX
+from minigrid.core.constants import COLOR_TO_IDX, IDX_TO_OBJECT, OBJECT_TO_IDX, STATE_TO_IDX
 from minigrid.core.grid import Grid
 from minigrid.minigrid_env import MiniGridEnv
 
@@ -31,6 +31,7 @@ IDX_TO_STATE = {idx: name for name, idx in STATE_TO_IDX.items()}
 #: objects the agent interacts with: facing one of them is a milestone of a plan
 INTERACTIVE = {OBJECT_TO_IDX[name] for name in ("key", "ball", "box", "door", "goal")}
 MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
+N_OBJECTS, N_COLORS, N_STATES = len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE_TO_IDX)
 
 
 def find_minigrid(env: gym.Env) -> Optional[MiniGridEnv]:
@@ -119,6 +120,44 @@ class MiniGridGoalSpace(GoalSpace):
             return True
         carried, front = key[0], key[2] if self.use_color else key[1]
         return front in INTERACTIVE or (carried_before is not None and carried != carried_before)
+
+    def choosable(self, key: Hashable, goal_key: Hashable) -> bool:
+        """Not achieved in the state, and a milestone from it (:meth:`is_milestone` with what the state
+        carries): "facing a wall" or "facing an empty cell" is never worth a choice of its own, unless
+        reaching it changes what is carried (picking up or dropping)."""
+        if not super().choosable(key, goal_key):
+            return False
+        if key == SUCCESS_KEY:
+            return True
+        return self.is_milestone(goal_key, carried_before=key[0])
+
+    def features(self, obs: np.ndarray) -> np.ndarray:
+        """What the preference predictor reads: one-hots of the carried object, the object in front and its
+        state (and, with ``use_color``, both colours), then which (object, state) pairs are present anywhere
+        in the grid (a locked door, an open door, a key on the floor, ...). Positions are left out, so the
+        description recurs across layouts and a hundred labels can teach a ranking of sub-goals that holds
+        in every layout."""
+        batch = np.asarray(obs).reshape(-1, *np.shape(obs)[-3:]).astype(np.int64)
+        center, rows = batch.shape[1] // 2, np.arange(len(batch))
+        objects = np.clip(batch[..., 0], 0, N_OBJECTS - 1)
+        colors = np.clip(batch[..., 1], 0, N_COLORS - 1)
+        states = np.clip(batch[..., 2], 0, N_STATES - 1)
+        parts = [
+            (objects[:, center, center], N_OBJECTS),
+            (objects[:, center, center - 1], N_OBJECTS),
+            (states[:, center, center - 1], N_STATES),
+        ]
+        if self.use_color:
+            parts += [(colors[:, center, center], N_COLORS), (colors[:, center, center - 1], N_COLORS)]
+        size = sum(n for _, n in parts) + N_OBJECTS * N_STATES
+        out = np.zeros((len(batch), size), dtype=np.float32)
+        offset = 0
+        for values, n in parts:
+            out[rows, offset + values] = 1.0
+            offset += n
+        pairs = (objects * N_STATES + states).reshape(len(batch), -1)
+        out[rows[:, None], offset + pairs] = 1.0  # presence of each (object, state) in the grid
+        return out
 
     def privileged(self, env: gym.Env) -> dict[str, Any]:
         base = find_minigrid(env)

@@ -93,6 +93,9 @@ class HhP(DoubleDQN):
     :param dropout: dropout probability p of the predictor
     :param predictor_head: "linear" or "sigmoid" (DESIGN.md gap 1)
     :param confidence_spread: "std" or "var" of the MC-dropout predictions (DESIGN.md gap 1)
+    :param predictor_input: what the preference predictor reads: "observation", "features" (the goal space's
+        compact description of a state, :meth:`~sb3_hhp.goals.GoalSpace.features`) or "auto" (features when the
+        goal space has them; see the README's Design)
     :param predictor_kwargs: more arguments of :class:`~sb3_hhp.preferences.predictor.PreferencePredictor`
     :param rnd_kwargs: arguments of :class:`~sb3_hhp.curiosity.rnd.RND` (memory_size M, refresh_interval T, ...)
     :param subpolicy_kwargs: arguments of each subpolicy model (DoubleDQN or DDPG)
@@ -104,6 +107,9 @@ class HhP(DoubleDQN):
     :param train_shared: with ``share_experience``, every subpolicy takes its gradient steps on every primitive
         step (at its own ``train_freq``), not only while it acts (see the README's Design)
     :param center_bonus: centre the preference bonus over the sub-goals of each state (see the README's Design)
+    :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
+        calls choosable there (:meth:`~sb3_hhp.goals.GoalSpace.choosable`: not already achieved; on MiniGrid,
+        also a milestone); in acting, exploring and the TD target alike (see the README's Design)
     :param record_images: render states for people (default: only when the oracle is a person)
     Other parameters are those of :class:`~sb3_hhp.dqn.DoubleDQN` (the meta-controller); the meta
     replay buffer R_H holds ``buffer_size`` sub-goal choices, and ``target_update_interval`` counts them.
@@ -140,6 +146,7 @@ class HhP(DoubleDQN):
         dropout: float = 0.1,
         predictor_head: str = "linear",
         confidence_spread: str = "std",
+        predictor_input: str = "auto",
         predictor_kwargs: Optional[dict[str, Any]] = None,
         rnd_kwargs: Optional[dict[str, Any]] = None,
         subpolicy_kwargs: Optional[dict[str, Any]] = None,
@@ -150,6 +157,7 @@ class HhP(DoubleDQN):
         share_experience: bool = True,
         train_shared: bool = False,
         center_bonus: bool = True,
+        mask_subgoals: bool = True,
         record_images: Optional[bool] = None,
         learning_rate: Union[float, Schedule] = 1e-3,
         buffer_size: int = 500_000,
@@ -186,6 +194,8 @@ class HhP(DoubleDQN):
             raise ValueError(f"n_opt must be >= 1, got {n_opt}")
         if train_shared and not share_experience:
             raise ValueError("train_shared=True trains subpolicies on shared experience: it needs share_experience=True")
+        if predictor_input not in ("auto", "features", "observation"):
+            raise ValueError(f"predictor_input must be 'auto', 'features' or 'observation', got {predictor_input!r}")
         if not 0.0 <= dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
         self.oracle_spec = oracle
@@ -211,6 +221,7 @@ class HhP(DoubleDQN):
         self.dropout = dropout
         self.predictor_head = predictor_head
         self.confidence_spread = confidence_spread
+        self.predictor_input = predictor_input
         self.predictor_kwargs = dict(predictor_kwargs or {})
         self.rnd_kwargs = dict(rnd_kwargs or {})
         self.subpolicy_kwargs = dict(subpolicy_kwargs or {})
@@ -219,6 +230,7 @@ class HhP(DoubleDQN):
         self.oracle_kwargs = dict(oracle_kwargs or {})
         self.n_opt = n_opt
         self.center_bonus = center_bonus
+        self.mask_subgoals = mask_subgoals
         self.share_experience = share_experience
         self.train_shared = train_shared
         self.record_images = record_images
@@ -273,7 +285,17 @@ class HhP(DoubleDQN):
             spread=self.confidence_spread, buffer_size=max(1, self.query_budget), device=device, seed=self.seed,
         )
         predictor_kwargs.update(self.predictor_kwargs)
-        self.predictor = PreferencePredictor(obs_space, **predictor_kwargs)
+        sample = self.goal_space.features(np.zeros((1, *obs_space.shape), dtype=obs_space.dtype))
+        if self.predictor_input == "features" and sample is None:
+            raise ValueError(
+                f"predictor_input='features' needs a goal space with features; {type(self.goal_space).__name__} has none: "
+                "use predictor_input='observation' (or 'auto')"
+            )
+        self._predictor_reads_features = sample is not None and self.predictor_input != "observation"
+        predictor_space = (
+            spaces.Box(-np.inf, np.inf, (sample.shape[1],), np.float32) if self._predictor_reads_features else obs_space
+        )
+        self.predictor = PreferencePredictor(predictor_space, **predictor_kwargs)
         self.query_selector = QuerySelector(self.query_budget, threshold=self.t_qry, mode=self.query_mode)
         self.return_normalizer = PreferenceReturnNormalizer(gamma=0.99, rollout_length=64)
         self.subpolicies = SubpolicySet(
@@ -292,6 +314,7 @@ class HhP(DoubleDQN):
         if not hasattr(self, "consumed_query_ids"):
             self.consumed_query_ids: set[str] = set()
         self.pending_queries: dict[str, Any] = {}
+        self._mask_cache: dict[Any, np.ndarray] = {}  # state key -> choosable sub-goals, emptied when G changes
         self.recent_choices: deque = deque(maxlen=1_000)
         self.last_predictor_stats: dict[str, float] = {}
         self.last_confidences: np.ndarray = np.zeros(0)
@@ -343,6 +366,40 @@ class HhP(DoubleDQN):
                 self.env.action_space = self.action_space
         mask = np.arange(self.action_space.n) < n_goals
         self.valid_actions = mask if n_goals > 0 else None
+        self._mask_cache = {}
+
+    def action_mask(self, observations: Union[np.ndarray, dict[str, np.ndarray]]) -> Optional[np.ndarray]:
+        """The sub-goals the meta-controller may choose in each state: the existing ones, and with
+        ``mask_subgoals`` only those the goal space calls choosable from the state's key (a state where
+        none is keeps every existing sub-goal)."""
+        valid = self._valid_actions
+        if valid is None or not self.mask_subgoals or isinstance(observations, dict):
+            return valid
+        batch = np.asarray(observations).astype(self.primitive_observation_space.dtype, copy=False)
+        goal_keys = [goal.key for goal in self.subgoals]
+        rows = np.empty((len(batch), len(valid)), dtype=bool)
+        for i, obs in enumerate(batch):
+            key = self.goal_space.key(obs)
+            row = self._mask_cache.get(key)
+            if row is None:
+                row = valid.copy()
+                row[: len(goal_keys)] = [self.goal_space.choosable(key, goal_key) for goal_key in goal_keys]
+                row = row if row.any() else valid
+                self._mask_cache[key] = row
+            rows[i] = row
+        return rows
+
+    def predictor_inputs(self, observations: np.ndarray) -> np.ndarray:
+        """What the predictor reads for a batch of observations: the goal space's features, or the
+        observations themselves (``predictor_input``)."""
+        observations = np.asarray(observations)
+        return self.goal_space.features(observations) if self._predictor_reads_features else observations
+
+    def add_preference(self, query: Any, label: Any) -> bool:
+        """Feed one answered query to the predictor's buffer R (False: the label teaches nothing, e.g.
+        "incomparable")."""
+        state, goal1, goal2 = (self.predictor_inputs(np.asarray(obs)[None])[0] for obs in (query.state, query.goal1_obs, query.goal2_obs))
+        return self.predictor.add(state, goal1, goal2, label)
 
     @property
     def goal_obs(self) -> np.ndarray:
@@ -371,7 +428,7 @@ class HhP(DoubleDQN):
         """The preference bonus b = p_hat(s, g) (Algorithm 1 line 12), centred over the sub-goals when
         ``center_bonus``: b(s, g) - mean_g' p_hat(s, g'). Bradley-Terry (eq. 2) fixes scores only up to a
         per-state constant, so the uncentred level is arbitrary shaping that can pay for dawdling."""
-        goal_obs = self.goal_obs
+        goal_obs, states = self.predictor_inputs(self.goal_obs), self.predictor_inputs(states)
         if not self.center_bonus:
             return self.predictor.score(states, goal_obs[goals])
         n_goals, n_states = len(goal_obs), len(states)
@@ -384,7 +441,7 @@ class HhP(DoubleDQN):
         if self.valid_actions is None:  # no sub-goal yet: HierarchicalEnv explores at random
             action = np.zeros(n_envs, dtype=np.int64)
         elif self.num_timesteps < learning_starts:
-            action = self._random_actions(n_envs)
+            action = self._random_actions(n_envs, self.action_mask(self._last_obs))
         else:
             action, _ = DoubleDQN.predict(self, self._last_obs, deterministic=False)
         return action, action
@@ -474,10 +531,12 @@ class HhP(DoubleDQN):
                 failed = goals[np.asarray(renew)[gave_up]]
                 with th.no_grad():
                     q_values = self.q_net(self.policy.obs_to_tensor(batch[np.asarray(renew)[gave_up]])[0]).cpu().numpy()
-                q_values[:, len(subgoals):] = -np.inf
+                q_values[~self.action_mask(batch[np.asarray(renew)[gave_up]])] = -np.inf
+                allowed = np.isfinite(q_values)
                 q_values[np.arange(len(gave_up)), failed] = -np.inf
                 chosen = np.array(chosen, copy=True)
-                chosen[gave_up] = q_values.argmax(axis=1)
+                # keep the failed sub-goal only when it is the one allowed
+                chosen[gave_up] = np.where(np.isfinite(q_values).any(axis=1), q_values.argmax(axis=1), allowed.argmax(axis=1))
             goals[renew] = chosen
             steps[renew] = 0
         actions = np.stack([self.subpolicies[int(goals[i])].act(batch[i], deterministic=deterministic) for i in range(n_envs)])
@@ -524,7 +583,7 @@ class HhP(DoubleDQN):
             if query.query_id in self.consumed_query_ids:
                 continue
             self.consumed_query_ids.add(query.query_id)
-            added += int(self.predictor.add(query.state, query.goal1_obs, query.goal2_obs, answer.label))
+            added += int(self.add_preference(query, answer.label))
         state = self.query_selector.state_dict()
         asked = self.store.count_asked()
         if asked > state["used"]:
@@ -557,8 +616,9 @@ class HhP(DoubleDQN):
         """One record per sub-goal for the gallery: id, image, when found, success rate, recent choices, mean score."""
         counts = Counter(self.recent_choices)
         records = []
-        goal_obs = self.goal_obs if self.subgoals else None
+        goal_obs = self.predictor_inputs(self.goal_obs) if self.subgoals else None
         states = np.stack(list(self.hierarchy.last_trace.high_obs)) if self.hierarchy and self.hierarchy.last_trace.high_obs else None
+        states = None if states is None else self.predictor_inputs(states)
         for goal_id, goal in enumerate(self.subgoals):
             mean_score = None
             if states is not None and len(self.predictor) > 0:
@@ -583,7 +643,7 @@ class HhP(DoubleDQN):
             *super()._excluded_save_params(),
             "hierarchy", "rnd", "predictor", "query_selector", "return_normalizer", "subpolicies", "discovery",
             "store", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
-            "last_confidences", "consumed_query_ids", "_loaded_subgoals", "initial_subgoals",
+            "last_confidences", "consumed_query_ids", "_loaded_subgoals", "initial_subgoals", "_mask_cache",
         ]
 
     def components_state(self) -> dict[str, Any]:
@@ -666,6 +726,8 @@ class HhP(DoubleDQN):
                     raise ValueError(
                         f"{path} is a damaged HhP model: its {COMPONENTS_FILE} cannot be read ({error}); save it again with HhP.save"
                     ) from error
+                if "predictor_input" not in kwargs and '"predictor_input"' not in archive.read("data").decode("utf-8", "replace"):
+                    kwargs["predictor_input"] = "observation"  # saved before the predictor could read features
         except zipfile.BadZipFile as error:
             raise ValueError(f"{path} is not a saved HhP model (not a zip archive): {error}") from error
         model = super().load(file, env=None, device=device, custom_objects=custom_objects,

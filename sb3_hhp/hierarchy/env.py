@@ -66,7 +66,8 @@ class HierarchicalEnv(gym.Env):
     :param capacity: initial size of the action space (grows by doubling)
     :param record_images: render s_t at each choice (needed by people and the gallery)
     :param share_experience: also store every transition in the other subpolicies' buffers with their
-        own rewards (intra-option learning)
+        own rewards (intra-option learning); they are one-step transitions in those buffers, since n-step
+        returns along another subpolicy's actions are biased
     :param train_shared: with ``share_experience``, every subpolicy also counts a shared step as a learning
         tick (gradient steps at its own ``train_freq``), not only the active one; costs a gradient step per
         sub-goal every ``train_freq`` primitive steps
@@ -197,7 +198,8 @@ class HierarchicalEnv(gym.Env):
         rewards = subpolicy_reward(pseudo_reward(done, terminal), intrinsic, self.alpha)  # eq. 5, 6 for every g
         for goal_id, other in enumerate(self.subpolicies.policies):
             if goal_id != active:
-                other.store(obs, next_obs, action, float(rewards[goal_id]), bool(terminal[goal_id]), timeout=truncated)
+                other.store(obs, next_obs, action, float(rewards[goal_id]), bool(terminal[goal_id]), timeout=truncated,
+                            off_policy=True)
                 if self.train_shared:
                     other.learn_step()
 

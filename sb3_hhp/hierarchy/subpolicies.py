@@ -99,14 +99,16 @@ class Subpolicy:
         return action
 
     def store(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: float, done: bool,
-              timeout: bool = False) -> None:
+              timeout: bool = False, off_policy: bool = False) -> None:
         """Add one transition to this subpolicy's buffer D_g (Algorithm 1 line 19), without training.
-        ``timeout``: the episode was cut by its time limit here (bootstrapped, but n-step returns stop)."""
+        ``timeout``: the episode was cut by its time limit here (bootstrapped, but n-step returns stop).
+        ``off_policy``: another subpolicy acted (relabelled experience): a prioritized buffer keeps it a
+        one-step transition, outside every n-step return."""
         model = self.model
         buffer_action = action if self._discrete else model.policy.scale_action(action)
         model.replay_buffer.add(  # type: ignore[union-attr]
             obs[None], next_obs[None], np.asarray([buffer_action]), np.asarray([reward], np.float32),
-            np.asarray([done or timeout]), [{"TimeLimit.truncated": timeout and not done}],
+            np.asarray([done or timeout]), [{"TimeLimit.truncated": timeout and not done, "off_policy": off_policy}],
         )
 
     def observe(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: float, done: bool) -> None:
