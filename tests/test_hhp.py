@@ -557,6 +557,38 @@ def test_predictor_reads_goal_space_features_or_observations() -> None:
         make_model(DOORKEY, predictor_input="pixels")
 
 
+def test_meta_controller_reads_goal_space_features_or_observations() -> None:
+    """meta_input "auto": the Q-network reads the goal space's features, so two layouts with the same description get
+    the same Q-values; "observation": SB3's flattened observation; a clear error where features cannot be had."""
+    from stable_baselines3.common.torch_layers import FlattenExtractor
+
+    from sb3_hhp.hhp.policies import GoalSpaceFeatures
+
+    model = make_model(DOORKEY)
+    assert isinstance(model.q_net.features_extractor, GoalSpaceFeatures)
+    states = observations(seeds=tuple(range(40)))
+    features = model.goal_space.features(states)
+    with th.no_grad():
+        q_values = model.q_net(model.policy.obs_to_tensor(states)[0]).numpy()
+    same = [(i, j) for i in range(len(states)) for j in range(i) if (features[i] == features[j]).all() and (states[i] != states[j]).any()]
+    assert same, "no two layouts with the same description among the first states"
+    for i, j in same:
+        np.testing.assert_allclose(q_values[i], q_values[j])
+    raw = make_model(DOORKEY, meta_input="observation")
+    assert isinstance(raw.q_net.features_extractor, FlattenExtractor)
+
+    class NoFeatures(MiniGridGoalSpace):
+        def features(self, obs):
+            return None
+
+    with pytest.raises(ValueError, match="meta_input='observation'"):
+        make_model(DOORKEY, goal_space=NoFeatures(), meta_input="features", predictor_input="observation")
+    with pytest.raises(ValueError, match="features_extractor_class"):
+        make_model(DOORKEY, meta_input="features", policy_kwargs=dict(features_extractor_class=FlattenExtractor))
+    with pytest.raises(ValueError, match="meta_input"):
+        make_model(DOORKEY, meta_input="pixels")
+
+
 # ---------------------------------------------------------------------------- resume
 
 

@@ -29,7 +29,7 @@ from sb3_hhp.curiosity.rnd import RND
 from sb3_hhp.discovery.csd import SubgoalDiscovery
 from sb3_hhp.dqn.dqn import DoubleDQN
 from sb3_hhp.goals import GoalSpace, make_goal_space, wrap_env
-from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, MlpPolicy, MultiInputPolicy
+from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, MlpPolicy, MultiInputPolicy
 from sb3_hhp.hierarchy.env import HierarchicalEnv
 from sb3_hhp.hierarchy.subpolicies import SubpolicySet
 from sb3_hhp.oracles.base import Oracle
@@ -96,6 +96,9 @@ class HhP(DoubleDQN):
     :param predictor_input: what the preference predictor reads: "observation", "features" (the goal space's
         compact description of a state, :meth:`~sb3_hhp.goals.GoalSpace.features`) or "auto" (features when the
         goal space has them; see the README's Design)
+    :param meta_input: what the meta-controller reads: "observation", "features" (the goal space's description,
+        through :class:`~sb3_hhp.hhp.policies.GoalSpaceFeatures`) or "auto" (features when the goal space has
+        them and ``policy_kwargs`` names no features extractor; see the README's Design)
     :param predictor_kwargs: more arguments of :class:`~sb3_hhp.preferences.predictor.PreferencePredictor`
     :param rnd_kwargs: arguments of :class:`~sb3_hhp.curiosity.rnd.RND` (memory_size M, refresh_interval T, ...)
     :param subpolicy_kwargs: arguments of each subpolicy model (DoubleDQN or DDPG)
@@ -147,6 +150,7 @@ class HhP(DoubleDQN):
         predictor_head: str = "linear",
         confidence_spread: str = "std",
         predictor_input: str = "auto",
+        meta_input: str = "auto",
         predictor_kwargs: Optional[dict[str, Any]] = None,
         rnd_kwargs: Optional[dict[str, Any]] = None,
         subpolicy_kwargs: Optional[dict[str, Any]] = None,
@@ -196,6 +200,8 @@ class HhP(DoubleDQN):
             raise ValueError("train_shared=True trains subpolicies on shared experience: it needs share_experience=True")
         if predictor_input not in ("auto", "features", "observation"):
             raise ValueError(f"predictor_input must be 'auto', 'features' or 'observation', got {predictor_input!r}")
+        if meta_input not in ("auto", "features", "observation"):
+            raise ValueError(f"meta_input must be 'auto', 'features' or 'observation', got {meta_input!r}")
         if not 0.0 <= dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
         self.oracle_spec = oracle
@@ -222,6 +228,7 @@ class HhP(DoubleDQN):
         self.predictor_head = predictor_head
         self.confidence_spread = confidence_spread
         self.predictor_input = predictor_input
+        self.meta_input = meta_input
         self.predictor_kwargs = dict(predictor_kwargs or {})
         self.rnd_kwargs = dict(rnd_kwargs or {})
         self.subpolicy_kwargs = dict(subpolicy_kwargs or {})
@@ -247,6 +254,7 @@ class HhP(DoubleDQN):
                 base_env, self.goal_space, subpolicies=None, rnd=None,  # type: ignore[arg-type]
                 alpha=alpha if use_curiosity else 0.0, max_subgoal_steps=max_subgoal_steps, capacity=subgoal_capacity,
             )
+            policy_kwargs = self._meta_policy_kwargs(policy_kwargs)
         super().__init__(
             policy,
             self.hierarchy,  # type: ignore[arg-type]
@@ -275,6 +283,26 @@ class HhP(DoubleDQN):
             self._setup_model()
 
     # ------------------------------------------------------------------ construction
+    def _meta_policy_kwargs(self, policy_kwargs: Optional[dict[str, Any]]) -> dict[str, Any]:
+        """``policy_kwargs`` with the goal space's features as the meta-controller's features extractor when
+        ``meta_input`` asks for them (and no extractor is named)."""
+        policy_kwargs = dict(policy_kwargs or {})
+        if self.meta_input == "observation":
+            return policy_kwargs
+        space = self.primitive_observation_space
+        has_features = self.goal_space.features(np.zeros((1, *space.shape), dtype=space.dtype)) is not None
+        if self.meta_input == "features":
+            if not has_features:
+                raise ValueError(
+                    f"meta_input='features' needs a goal space with features; {type(self.goal_space).__name__} has none: "
+                    "use meta_input='observation' (or 'auto')"
+                )
+            if "features_extractor_class" in policy_kwargs:
+                raise ValueError("meta_input='features' sets the features extractor: remove features_extractor_class from policy_kwargs")
+        if has_features and "features_extractor_class" not in policy_kwargs:
+            policy_kwargs.update(features_extractor_class=GoalSpaceFeatures, features_extractor_kwargs=dict(goal_space=self.goal_space))
+        return policy_kwargs
+
     def _setup_model(self) -> None:
         super()._setup_model()
         device = get_device(self.device)
