@@ -63,8 +63,8 @@ def main() -> None:
     parser.add_argument("--hhp-kwargs", default="{}", help="JSON dict of HhP keyword arguments")
     args = parser.parse_args()
     th.set_num_threads(1)
-    model = HhP("MlpPolicy", gym.make(args.env), oracle="scripted", query_budget=100, seed=args.seed,
-                query_horizon=200_000, n_masks=100, **json.loads(args.hhp_kwargs))
+    kwargs = {"query_horizon": 200_000, **json.loads(args.hhp_kwargs)}
+    model = HhP("MlpPolicy", gym.make(args.env), oracle="scripted", query_budget=100, seed=args.seed, n_masks=100, **kwargs)
     model.learn(args.steps)
     env = wrap_env(gym.make(args.env))
     result = dict(
