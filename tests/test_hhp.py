@@ -558,13 +558,15 @@ def test_predictor_reads_goal_space_features_or_observations() -> None:
 
 
 def test_meta_controller_reads_goal_space_features_or_observations() -> None:
-    """meta_input "auto": the Q-network reads the goal space's features, so two layouts with the same description get
-    the same Q-values; "observation": SB3's flattened observation; a clear error where features cannot be had."""
+    """meta_input "auto" or "features": the Q-network reads the goal space's features, so two layouts with the same
+    description get the same Q-values; "observation" (the default): SB3's flattened observation; a clear error
+    where features cannot be had."""
     from stable_baselines3.common.torch_layers import FlattenExtractor
 
     from sb3_hhp.hhp.policies import GoalSpaceFeatures
 
-    model = make_model(DOORKEY)
+    assert isinstance(make_model(DOORKEY, meta_input="features").q_net.features_extractor, GoalSpaceFeatures)
+    model = make_model(DOORKEY, meta_input="auto")
     assert isinstance(model.q_net.features_extractor, GoalSpaceFeatures)
     states = observations(seeds=tuple(range(40)))
     features = model.goal_space.features(states)
@@ -574,8 +576,7 @@ def test_meta_controller_reads_goal_space_features_or_observations() -> None:
     assert same, "no two layouts with the same description among the first states"
     for i, j in same:
         np.testing.assert_allclose(q_values[i], q_values[j])
-    raw = make_model(DOORKEY, meta_input="observation")
-    assert isinstance(raw.q_net.features_extractor, FlattenExtractor)
+    assert isinstance(make_model(DOORKEY).q_net.features_extractor, FlattenExtractor)
 
     class NoFeatures(MiniGridGoalSpace):
         def features(self, obs):

@@ -12,21 +12,23 @@ forth, or a no-op such as "pick up" in front of the goal) until its sub-goal giv
 meta-controller then chooses the same sub-goal again from the same state.
 
 Calibration (2-core CPU, one torch thread, 12,000 primitive steps, ~65 s of training, 30 evaluation
-episodes on seeds 10,000-10,029; the random policy: success 0.60, mean return 0.354):
+episodes on seeds 10,000-10,029; the random policy: success 0.60, mean return 0.354), with the defaults
+of the meta-controller's sub-goal mask and the predictor reading the goal space's features:
 
 ==========  ============  ===========
 train seed  success rate  mean return
 ==========  ============  ===========
-0 (test)    1.00          0.950
-1           0.93          0.798
-2           0.97          0.793
-3           0.90          0.728
-4           0.87          0.617
-5           0.90          0.756
+0 (test)    0.97          0.781
+1           0.90          0.761
+2           0.93          0.807
+3           0.67          0.605
+4           0.90          0.811
+5           0.90          0.832
 ==========  ============  ===========
 
-so the thresholds (success >= 0.7, mean return >= random + 0.2) hold for every seed tried; the test
-trains seed 0 only.
+so the mean-return margin (random + 0.2) holds for every seed tried and the success threshold (0.7) for
+all but seed 3; the test trains seed 0 only. (Before the mask and the features: 1.00, 0.93, 0.97, 0.90,
+0.87, 0.90.)
 """
 
 from collections.abc import Callable

@@ -96,9 +96,9 @@ class HhP(DoubleDQN):
     :param predictor_input: what the preference predictor reads: "observation", "features" (the goal space's
         compact description of a state, :meth:`~sb3_hhp.goals.GoalSpace.features`) or "auto" (features when the
         goal space has them; see the README's Design)
-    :param meta_input: what the meta-controller reads: "observation", "features" (the goal space's description,
-        through :class:`~sb3_hhp.hhp.policies.GoalSpaceFeatures`) or "auto" (features when the goal space has
-        them and ``policy_kwargs`` names no features extractor; see the README's Design)
+    :param meta_input: what the meta-controller reads: "observation" (default), "features" (the goal space's
+        description, through :class:`~sb3_hhp.hhp.policies.GoalSpaceFeatures`) or "auto" (features when the goal
+        space has them and ``policy_kwargs`` names no features extractor; see the README's Design)
     :param predictor_kwargs: more arguments of :class:`~sb3_hhp.preferences.predictor.PreferencePredictor`
     :param rnd_kwargs: arguments of :class:`~sb3_hhp.curiosity.rnd.RND` (memory_size M, refresh_interval T, ...)
     :param subpolicy_kwargs: arguments of each subpolicy model (DoubleDQN or DDPG)
@@ -150,7 +150,7 @@ class HhP(DoubleDQN):
         predictor_head: str = "linear",
         confidence_spread: str = "std",
         predictor_input: str = "auto",
-        meta_input: str = "auto",
+        meta_input: str = "observation",
         predictor_kwargs: Optional[dict[str, Any]] = None,
         rnd_kwargs: Optional[dict[str, Any]] = None,
         subpolicy_kwargs: Optional[dict[str, Any]] = None,
