@@ -54,6 +54,11 @@ class GoalSpace(ABC):
         None (the default): the predictor reads the observations themselves."""
         return None
 
+    def features_dim(self, observation_space: gym.spaces.Box) -> Optional[int]:
+        """The length F of :meth:`features` for observations of ``observation_space`` (None: no features)."""
+        sample = self.features(np.zeros((1, *observation_space.shape), dtype=observation_space.dtype))
+        return None if sample is None else int(sample.shape[1])
+
     def similarity(self, key: Hashable, obs: np.ndarray, goal_keys: Sequence[Hashable], goal_obs: np.ndarray) -> np.ndarray:
         """Similarity in [0, 1] of a candidate to every stored sub-goal (default: equal keys -> 1, else 0)."""
         return np.array([1.0 if key == other else 0.0 for other in goal_keys], dtype=np.float64)

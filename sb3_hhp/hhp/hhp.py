@@ -283,23 +283,27 @@ class HhP(DoubleDQN):
             self._setup_model()
 
     # ------------------------------------------------------------------ construction
+    def _reads_features(self, option: str, value: str) -> bool:
+        """Whether ``option`` ("predictor_input" / "meta_input") set to ``value`` means reading the goal space's
+        features: "features" needs them (a clear error otherwise), "auto" takes them when they exist."""
+        if value == "observation":
+            return False
+        has_features = self.goal_space.features_dim(self.primitive_observation_space) is not None
+        if value == "features" and not has_features:
+            raise ValueError(
+                f"{option}='features' needs a goal space with features; {type(self.goal_space).__name__} has none: "
+                f"use {option}='observation' (or 'auto')"
+            )
+        return has_features
+
     def _meta_policy_kwargs(self, policy_kwargs: Optional[dict[str, Any]]) -> dict[str, Any]:
         """``policy_kwargs`` with the goal space's features as the meta-controller's features extractor when
         ``meta_input`` asks for them (and no extractor is named)."""
         policy_kwargs = dict(policy_kwargs or {})
-        if self.meta_input == "observation":
-            return policy_kwargs
-        space = self.primitive_observation_space
-        has_features = self.goal_space.features(np.zeros((1, *space.shape), dtype=space.dtype)) is not None
-        if self.meta_input == "features":
-            if not has_features:
-                raise ValueError(
-                    f"meta_input='features' needs a goal space with features; {type(self.goal_space).__name__} has none: "
-                    "use meta_input='observation' (or 'auto')"
-                )
-            if "features_extractor_class" in policy_kwargs:
-                raise ValueError("meta_input='features' sets the features extractor: remove features_extractor_class from policy_kwargs")
-        if has_features and "features_extractor_class" not in policy_kwargs:
+        reads_features = self._reads_features("meta_input", self.meta_input)
+        if self.meta_input == "features" and "features_extractor_class" in policy_kwargs:
+            raise ValueError("meta_input='features' sets the features extractor: remove features_extractor_class from policy_kwargs")
+        if reads_features and "features_extractor_class" not in policy_kwargs:
             policy_kwargs.update(features_extractor_class=GoalSpaceFeatures, features_extractor_kwargs=dict(goal_space=self.goal_space))
         return policy_kwargs
 
@@ -313,15 +317,10 @@ class HhP(DoubleDQN):
             spread=self.confidence_spread, buffer_size=max(1, self.query_budget), device=device, seed=self.seed,
         )
         predictor_kwargs.update(self.predictor_kwargs)
-        sample = self.goal_space.features(np.zeros((1, *obs_space.shape), dtype=obs_space.dtype))
-        if self.predictor_input == "features" and sample is None:
-            raise ValueError(
-                f"predictor_input='features' needs a goal space with features; {type(self.goal_space).__name__} has none: "
-                "use predictor_input='observation' (or 'auto')"
-            )
-        self._predictor_reads_features = sample is not None and self.predictor_input != "observation"
+        self._predictor_reads_features = self._reads_features("predictor_input", self.predictor_input)
         predictor_space = (
-            spaces.Box(-np.inf, np.inf, (sample.shape[1],), np.float32) if self._predictor_reads_features else obs_space
+            spaces.Box(-np.inf, np.inf, (self.goal_space.features_dim(obs_space),), np.float32)
+            if self._predictor_reads_features else obs_space
         )
         self.predictor = PreferencePredictor(predictor_space, **predictor_kwargs)
         self.query_selector = QuerySelector(self.query_budget, threshold=self.t_qry, mode=self.query_mode)
@@ -426,7 +425,7 @@ class HhP(DoubleDQN):
     def add_preference(self, query: Any, label: Any) -> bool:
         """Feed one answered query to the predictor's buffer R (False: the label teaches nothing, e.g.
         "incomparable")."""
-        state, goal1, goal2 = (self.predictor_inputs(np.asarray(obs)[None])[0] for obs in (query.state, query.goal1_obs, query.goal2_obs))
+        state, goal1, goal2 = self.predictor_inputs(np.stack([query.state, query.goal1_obs, query.goal2_obs]))
         return self.predictor.add(state, goal1, goal2, label)
 
     @property

@@ -4,7 +4,6 @@ extractor that lets the meta-controller read the goal space's layout-free descri
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 import torch as th
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.dqn.policies import CnnPolicy, DQNPolicy, MlpPolicy, MultiInputPolicy
@@ -21,10 +20,10 @@ class GoalSpaceFeatures(BaseFeaturesExtractor):
     """
 
     def __init__(self, observation_space: gym.spaces.Box, goal_space: Any) -> None:
-        sample = goal_space.features(np.zeros((1, *observation_space.shape), dtype=observation_space.dtype))
-        if sample is None:
+        features_dim = goal_space.features_dim(observation_space)
+        if features_dim is None:
             raise ValueError(f"{type(goal_space).__name__} has no features: the meta-controller must read observations")
-        super().__init__(observation_space, features_dim=int(sample.shape[1]))
+        super().__init__(observation_space, features_dim=features_dim)
         self.goal_space = goal_space
 
     def forward(self, observations: th.Tensor) -> th.Tensor:
