@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import torch as th
+import torch.nn.functional as F
 from gymnasium import spaces
 from scipy import stats
 from stable_baselines3.common.buffers import NStepReplayBuffer
@@ -166,6 +167,75 @@ def test_per_n_step_returns_stop_at_off_policy_transitions() -> None:
     assert list(last_rows[[0, 3, 4, 5, 9]]) == [2, 3, 4, 7, 11]
     buffer.reset()
     assert not buffer.off_policy.any()
+
+
+def test_per_behaviour_returns_run_over_off_policy_transitions() -> None:
+    """With off_policy_lower_bound the buffer also samples the n-step return along the stored behaviour:
+    off-policy transitions do not stop it, terminals, the newest transition and n still do."""
+    gamma, n = 0.5, 4
+    buffer = PrioritizedReplayBuffer(32, spaces.Box(-np.inf, np.inf, (1,), np.float32), spaces.Discrete(2),
+                                     device="cpu", n_steps=n, gamma=gamma, off_policy_lower_bound=True)
+    off_policy, terminal = {3, 4, 8}, {6}
+    for k in range(12):
+        buffer.add(np.array([[k]], np.float32), np.array([[k + 100]], np.float32), np.zeros(1),
+                   np.array([2.0**k], np.float32), np.array([k in terminal]), [{"off_policy": k in off_policy}])
+    returns, last_rows, discounts = buffer._n_step_returns(np.arange(12), np.zeros(12, dtype=int), None, behaviour=True)
+    # by hand: 0 sums 0..3 (n), 3 sums 3..6 (through 3, 4; stops at the terminal 6), 5 sums 5..6, 7 sums 7..10,
+    # 8 sums 8..11, 10 sums 10..11 (the newest)
+    expected_last = {0: 3, 3: 6, 4: 6, 5: 6, 6: 6, 7: 10, 8: 11, 10: 11}
+    for k, last in expected_last.items():
+        m = last - k + 1
+        assert last_rows[k] == last, f"transition {k}"
+        assert returns[k, 0] == pytest.approx(sum(gamma**j * 2.0 ** (k + j) for j in range(m))), f"transition {k}"
+        assert discounts[k, 0] == pytest.approx(gamma**m), f"transition {k}"
+    batch = buffer.sample(64)
+    rows = batch.indices
+    assert np.allclose(batch.behaviour_next_observations.numpy()[:, 0], last_rows[rows] + 100)
+    assert np.array_equal(batch.behaviour_dones.numpy()[:, 0], np.isin(last_rows[rows], list(terminal)).astype(np.float32))
+    assert np.allclose(batch.behaviour_rewards.numpy(), returns[rows])
+    own = buffer._n_step_returns(rows, np.zeros(len(rows), dtype=int), None)  # the usual target still stops
+    assert np.allclose(batch.rewards.numpy(), own[0])
+    with pytest.raises(ValueError, match="n_steps > 1"):
+        PrioritizedReplayBuffer(8, spaces.Box(-1, 1, (1,), np.float32), spaces.Discrete(2), off_policy_lower_bound=True)
+
+
+def test_double_dqn_target_is_raised_to_the_behaviour_return(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Optimality tightening: the TD target is max(double-Q target, behaviour n-step target), so a relabelled
+    transition whose behaviour reached the reward two steps later learns it at once."""
+    model = DoubleDQN("MlpPolicy", "CartPole-v1", n_steps=3, gamma=0.5, learning_starts=0, batch_size=16,
+                      buffer_size=100, policy_kwargs=dict(net_arch=[8]), seed=0, device="cpu",
+                      replay_buffer_kwargs={"off_policy_lower_bound": True})
+    model.set_logger(configure(None, []))
+    buffer = model.replay_buffer
+    obs = np.random.default_rng(0).normal(size=(4, 1, 4)).astype(np.float32)
+    # two off-policy steps with reward 0, then an own step with reward 1 that ends the episode
+    for k, (reward, done, off) in enumerate([(0.0, False, True), (0.0, False, True), (1.0, True, False)]):
+        buffer.add(obs[k], obs[k + 1], np.zeros(1), np.array([reward], np.float32), np.array([done]), [{"off_policy": off}])
+    seen: dict = {}
+    sample, loss = buffer.sample, F.smooth_l1_loss
+
+    def keep_indices(batch_size, env=None):
+        batch = sample(batch_size, env)
+        seen["indices"] = batch.indices
+        return batch
+
+    def keep_targets(current, target, reduction="mean"):
+        seen["targets"] = target.detach().numpy()[:, 0]
+        return loss(current, target, reduction=reduction)
+
+    monkeypatch.setattr(buffer, "sample", keep_indices)
+    monkeypatch.setattr(F, "smooth_l1_loss", keep_targets)
+    with th.no_grad():
+        bootstrap = [model.q_net_target(th.as_tensor(obs[k])).numpy()[0, model.q_net(th.as_tensor(obs[k])).argmax()]
+                     for k in (1, 2)]
+    model.train(gradient_steps=1, batch_size=16)
+    expected = {0: max(0.25, 0.5 * bootstrap[0]), 1: max(0.5, 0.5 * bootstrap[1]), 2: 1.0}  # behaviour: 0.25, 0.5, 1
+    assert set(seen["indices"]) == {0, 1, 2}
+    for index, target in zip(seen["indices"], seen["targets"]):
+        assert target == pytest.approx(expected[int(index)], abs=1e-6), f"transition {index}"
+    assert max(0.5 * bootstrap[0], 0.5 * bootstrap[1]) < 0.25  # the behaviour return is what raised them
+    model_without = DoubleDQN("MlpPolicy", "CartPole-v1", n_steps=3, seed=0, device="cpu", buffer_size=100)
+    assert model_without.replay_buffer.off_policy_lower_bound is False
 
 
 def test_per_n_steps_invalid_arguments() -> None:

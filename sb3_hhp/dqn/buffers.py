@@ -26,6 +26,11 @@ class PrioritizedReplayBufferSamples(NamedTuple):
     discounts: th.Tensor | None
     weights: th.Tensor
     indices: np.ndarray
+    # with ``off_policy_lower_bound``: the n-step return along the stored behaviour, off-policy rows included
+    behaviour_rewards: th.Tensor | None = None
+    behaviour_next_observations: th.Tensor | None = None
+    behaviour_dones: th.Tensor | None = None
+    behaviour_discounts: th.Tensor | None = None
 
 
 class PrioritizedReplayBuffer(ReplayBuffer):
@@ -63,6 +68,12 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         transition, and an n-step return stops before it: without importance weights, only one-step
         targets are sound on another policy's actions.
     :param gamma: Discount of the n-step returns, in ``[0, 1]``.
+    :param off_policy_lower_bound: Also sample, for every transition, the n-step return along the behaviour
+        that was stored after it, off-policy transitions included (same stops otherwise), as ``behaviour_*``
+        fields. The return of any behaviour is a lower bound on the optimal value, so
+        :class:`~sb3_hhp.dqn.DoubleDQN` raises its target to it where it is higher ("optimality tightening",
+        He et al., 2017): relabelled experience then carries a reward back n steps at a time, as own n-step
+        returns do, without the bias of an n-step target on another policy's actions. Needs ``n_steps > 1``.
     """
 
     def __init__(
@@ -79,6 +90,7 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         epsilon: float = 1e-6,
         n_steps: int = 1,
         gamma: float = 0.99,
+        off_policy_lower_bound: bool = False,
     ) -> None:
         if buffer_size < 1:
             raise ValueError(f"buffer_size must be >= 1, got {buffer_size}")
@@ -94,6 +106,8 @@ class PrioritizedReplayBuffer(ReplayBuffer):
             raise ValueError(f"n_steps must be an integer >= 1, got {n_steps}")
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        if off_policy_lower_bound and n_steps < 2:
+            raise ValueError("off_policy_lower_bound needs n_steps > 1 (it is an n-step return along the behaviour)")
         if n_steps > 1 and optimize_memory_usage:
             raise ValueError("n_steps > 1 needs optimize_memory_usage=False (next observations are read from the n-th transition)")
         if isinstance(observation_space, spaces.Dict):
@@ -115,6 +129,7 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         self.epsilon = float(epsilon)
         self.n_steps = int(n_steps)
         self.gamma = float(gamma)
+        self.off_policy_lower_bound = bool(off_policy_lower_bound)
         self.tree = SumTree(self.buffer_size * self.n_envs)
         self.off_policy = np.zeros((self.buffer_size, self.n_envs), dtype=bool)
         # Seeded from the global NumPy state, which SB3's `set_random_seed` has fixed beforehand.
@@ -201,29 +216,48 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         else:
             rewards = self._normalize_reward(self.rewards[batch_inds, env_inds].reshape(-1, 1), env)
             last_rows, discounts = batch_inds, None
+        next_obs, dones = self._closing(last_rows, env_inds, env)
+        behaviour: dict[str, th.Tensor] = {}
+        if self.off_policy_lower_bound:
+            b_rewards, b_last_rows, b_discounts = self._n_step_returns(batch_inds, env_inds, env, behaviour=True)
+            b_next_obs, b_dones = self._closing(b_last_rows, env_inds, env)
+            behaviour = dict(
+                behaviour_rewards=self.to_torch(b_rewards.astype(np.float32)),
+                behaviour_next_observations=self.to_torch(b_next_obs),
+                behaviour_dones=self.to_torch(b_dones),
+                behaviour_discounts=self.to_torch(b_discounts),
+            )
+        return PrioritizedReplayBufferSamples(
+            observations=self.to_torch(self._normalize_obs(self.observations[batch_inds, env_inds, :], env)),
+            actions=self.to_torch(self.actions[batch_inds, env_inds, :]),
+            next_observations=self.to_torch(next_obs),
+            dones=self.to_torch(dones),
+            rewards=self.to_torch(rewards.astype(np.float32)),
+            discounts=None if discounts is None else self.to_torch(discounts),
+            weights=self.to_torch(weights.astype(np.float32).reshape(-1, 1)),
+            indices=indices,
+            **behaviour,
+        )
+
+    def _closing(
+        self, last_rows: np.ndarray, env_inds: np.ndarray, env: VecNormalize | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The (normalised) next observation and the done flag ``(B, 1)`` of the transition closing a return."""
         if self.optimize_memory_usage:
             next_obs = self.observations[(last_rows + 1) % self.buffer_size, env_inds, :]
         else:
             next_obs = self.next_observations[last_rows, env_inds, :]
         # Only use dones that are not due to timeouts
         dones = self.dones[last_rows, env_inds] * (1 - self.timeouts[last_rows, env_inds])
-        return PrioritizedReplayBufferSamples(
-            observations=self.to_torch(self._normalize_obs(self.observations[batch_inds, env_inds, :], env)),
-            actions=self.to_torch(self.actions[batch_inds, env_inds, :]),
-            next_observations=self.to_torch(self._normalize_obs(next_obs, env)),
-            dones=self.to_torch(dones.reshape(-1, 1)),
-            rewards=self.to_torch(rewards.astype(np.float32)),
-            discounts=None if discounts is None else self.to_torch(discounts),
-            weights=self.to_torch(weights.astype(np.float32).reshape(-1, 1)),
-            indices=indices,
-        )
+        return self._normalize_obs(next_obs, env), dones.reshape(-1, 1)
 
     def _n_step_returns(
-        self, batch_inds: np.ndarray, env_inds: np.ndarray, env: VecNormalize | None
+        self, batch_inds: np.ndarray, env_inds: np.ndarray, env: VecNormalize | None, behaviour: bool = False
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The n-step return from each drawn transition: it runs over the transitions stored after it
         (same env) and stops at the first terminal or timeout, at the newest transition, after n, or before
-        an off-policy transition; an off-policy transition is a one-step return.
+        an off-policy transition; an off-policy transition is a one-step return. ``behaviour``: off-policy
+        transitions do not stop it (the return along the stored behaviour, a lower bound).
 
         :return: the returns ``(B, 1)``, the buffer row of the last transition summed (its next
             observation and done flag close the return), and the bootstrap discounts ``gamma^m`` ``(B, 1)``
@@ -235,7 +269,8 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         stop = self.dones[rows, cols].astype(bool) | self.timeouts[rows, cols].astype(bool) | (steps >= newer[:, None])
         off_policy = self.off_policy[rows, cols]
         next_off_policy = self.off_policy[(rows + 1) % self.buffer_size, cols]
-        stop |= off_policy | next_off_policy  # a relabelled transition stands alone and ends an own return
+        if not behaviour:
+            stop |= off_policy | next_off_policy  # a relabelled transition stands alone and ends an own return
         stop[:, -1] = True
         last = stop.argmax(axis=1)  # m - 1: the index of the last transition summed
         mask = steps[None, :] <= last[:, None]

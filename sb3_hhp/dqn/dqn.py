@@ -203,6 +203,11 @@ class DoubleDQN(DQN):
             super()._setup_model()
         finally:
             self.n_steps = n_steps
+        if getattr(self.replay_buffer, "off_policy_lower_bound", False) and type(self)._rewards is not DoubleDQN._rewards:
+            raise ValueError(
+                f"{type(self).__name__} recomputes its rewards when it samples (_rewards), which the stored behaviour "
+                "returns of off_policy_lower_bound would not see; leave replay_buffer_kwargs['off_policy_lower_bound'] off"
+            )
 
     # ------------------------------------------------------------------ hooks
 
@@ -297,6 +302,10 @@ class DoubleDQN(DQN):
                     valid_actions=valid_actions,
                 )
 
+                behaviour_rewards = getattr(replay_data, "behaviour_rewards", None)
+                if behaviour_rewards is not None:  # optimality tightening: the behaviour's return is a lower bound
+                    target_q_values = th.maximum(target_q_values, self._behaviour_target(replay_data, state_masks))
+
             current_q_values = th.gather(self.q_net(replay_data.observations), dim=1, index=replay_data.actions.long())
 
             # Per-sample Huber loss, weighted by the importance-sampling weights under PER
@@ -326,6 +335,15 @@ class DoubleDQN(DQN):
         self.logger.record("train/td_error", np.mean(td_errors_abs))
         if weights_mean:
             self.logger.record("train/is_weight", np.mean(weights_mean))
+
+    def _behaviour_target(self, replay_data: PrioritizedReplayBufferSamples, state_masks: bool) -> th.Tensor:
+        """The double-Q target of the n-step return along the stored behaviour (``off_policy_lower_bound``)."""
+        next_obs = replay_data.behaviour_next_observations
+        valid_actions = self._valid_actions_tensor(next_obs.cpu().numpy()) if state_masks else self._valid_actions_tensor()
+        next_q_target = self.q_net_target(next_obs)
+        next_q_online = self.q_net(next_obs) if self.double_q else next_q_target
+        return double_q_target(next_q_online, next_q_target, replay_data.behaviour_rewards,
+                               replay_data.behaviour_dones, replay_data.behaviour_discounts, valid_actions=valid_actions)
 
     # ------------------------------------------------------- action selection
 
