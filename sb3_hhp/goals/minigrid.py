@@ -122,14 +122,22 @@ class MiniGridGoalSpace(GoalSpace):
         return front in INTERACTIVE or (carried_before is not None and carried != carried_before)
 
     def choosable(self, key: Hashable, goal_key: Hashable) -> bool:
-        """Not achieved in the state, and a milestone from it (:meth:`is_milestone` with what the state
-        carries): "facing a wall" or "facing an empty cell" is never worth a choice of its own, unless
-        reaching it changes what is carried (picking up or dropping)."""
+        """Not achieved in the state, and one skill away from it: with the same carried object, facing an
+        object one interacts with (walk there, or open the door in front); with a different one, a single
+        pick-up (the agent then faces the emptied cell) or a single drop (it then faces what it dropped).
+        "Facing a wall / an empty cell" is never worth a choice of its own, and "carrying the key, facing the
+        locked door" is not chosen before the key is carried: such choices ask a subpolicy for two skills in
+        a row, and both its success rate and the meta-controller's values then mix two tasks."""
         if not super().choosable(key, goal_key):
             return False
-        if key == SUCCESS_KEY:
+        if key == SUCCESS_KEY or goal_key == SUCCESS_KEY:
             return True
-        return self.is_milestone(goal_key, carried_before=key[0])
+        carried, goal_carried, goal_front = key[0], goal_key[0], goal_key[2] if self.use_color else goal_key[1]
+        if goal_carried == carried:
+            return goal_front in INTERACTIVE
+        if carried == EMPTY:
+            return goal_front == EMPTY  # picked up: the cell in front is now empty
+        return goal_carried == EMPTY and goal_front == carried  # dropped: it lies in front
 
     def features(self, obs: np.ndarray) -> np.ndarray:
         """What the preference predictor reads: one-hots of the carried object, the object in front and its
