@@ -71,6 +71,7 @@ def main() -> None:
                         help="JSON dict of HhP keyword arguments (variants); subpolicy_kwargs defaults to n_steps 8, as hhp.yml")
     parser.add_argument("--tag", default="", help="name of the variant in the results")
     parser.add_argument("--out", required=True)
+    parser.add_argument("--save", default=None, help="also save the trained model here (HhP.load / DQN.load / PPO.load)")
     args = parser.parse_args()
     th.set_num_threads(1)
     out = pathlib.Path(args.out)
@@ -102,7 +103,11 @@ def main() -> None:
                       fps=round(model.num_timesteps / max(train_seconds, 1e-9), 1), **evaluation)
         result["evaluations"].append(dict(timesteps=int(model.num_timesteps), eval_seconds=time.perf_counter() - begin,
                                           **evaluation))
-        if hierarchical:
+        if hierarchical:  # each sub-goal: when it was found and its subpolicy's recent success rate, at this point
+            result["evaluations"][-1]["subgoals"] = {
+                model.goal_space.describe(goal.key): dict(found_at=goal.found_at, success=sub.success_rate)
+                for goal, sub in zip(model.subgoals, model.subpolicies.policies)
+            }
             result.update(queries_used=model.query_selector.used, query_budget=model.query_budget,
                           num_subgoals=len(model.subgoals),
                           subgoals=[model.goal_space.describe(goal.key) for goal in model.subgoals],
@@ -117,7 +122,10 @@ def main() -> None:
 
     # one learn call, so exploration and the query budget are paced over the whole run
     model.learn(args.steps, callback=EveryNTimesteps(args.eval_every, Evaluate()))
-    record()
+    if not result["evaluations"] or result["evaluations"][-1]["timesteps"] < args.steps:  # not evaluated at the end yet
+        record()
+    if args.save:
+        model.save(args.save)
     print(json.dumps(result, indent=2))
 
 

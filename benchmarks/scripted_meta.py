@@ -73,6 +73,8 @@ def main() -> None:
         hhp_stochastic=evaluate(model, env, args.episodes, True, 20_000, deterministic=False)["success_rate"],
         scripted_meta_stochastic=scripted_meta(model, args.env, args.episodes, deterministic=False),
         scripted_meta_deterministic=scripted_meta(model, args.env, args.episodes, deterministic=True),
+        subgoal_success={model.goal_space.describe(goal.key): sub.success_rate
+                         for goal, sub in zip(model.subgoals, model.subpolicies.policies)},
     )
     print(json.dumps(result, indent=2))
 
