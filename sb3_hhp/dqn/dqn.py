@@ -288,23 +288,14 @@ class DoubleDQN(DQN):
             # For n-step replay, discount factor is gamma**n_steps (when no early termination)
             discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
 
-            if state_masks:
-                valid_actions = self._valid_actions_tensor(replay_data.next_observations.cpu().numpy())
             with th.no_grad():
-                next_q_target = self.q_net_target(replay_data.next_observations)
-                next_q_online = self.q_net(replay_data.next_observations) if self.double_q else next_q_target
-                target_q_values = double_q_target(
-                    next_q_online,
-                    next_q_target,
-                    self._rewards(replay_data),
-                    replay_data.dones,
-                    discounts,
-                    valid_actions=valid_actions,
-                )
-
-                behaviour_rewards = getattr(replay_data, "behaviour_rewards", None)
-                if behaviour_rewards is not None:  # optimality tightening: the behaviour's return is a lower bound
-                    target_q_values = th.maximum(target_q_values, self._behaviour_target(replay_data, state_masks))
+                target_q_values = self._target(replay_data.next_observations, self._rewards(replay_data),
+                                               replay_data.dones, discounts, state_masks, valid_actions)
+                if getattr(replay_data, "behaviour_rewards", None) is not None:
+                    # optimality tightening: the behaviour's n-step return is a lower bound
+                    target_q_values = th.maximum(target_q_values, self._target(
+                        replay_data.behaviour_next_observations, replay_data.behaviour_rewards,
+                        replay_data.behaviour_dones, replay_data.behaviour_discounts, state_masks, valid_actions))
 
             current_q_values = th.gather(self.q_net(replay_data.observations), dim=1, index=replay_data.actions.long())
 
@@ -336,14 +327,14 @@ class DoubleDQN(DQN):
         if weights_mean:
             self.logger.record("train/is_weight", np.mean(weights_mean))
 
-    def _behaviour_target(self, replay_data: PrioritizedReplayBufferSamples, state_masks: bool) -> th.Tensor:
-        """The double-Q target of the n-step return along the stored behaviour (``off_policy_lower_bound``)."""
-        next_obs = replay_data.behaviour_next_observations
-        valid_actions = self._valid_actions_tensor(next_obs.cpu().numpy()) if state_masks else self._valid_actions_tensor()
+    def _target(self, next_obs: th.Tensor, rewards: th.Tensor, dones: th.Tensor, discounts: float | th.Tensor,
+                state_masks: bool, valid_actions: th.Tensor | None) -> th.Tensor:
+        """The double-Q target of returns closed by ``next_obs`` (per-state masks when ``state_masks``)."""
+        if state_masks:
+            valid_actions = self._valid_actions_tensor(next_obs.cpu().numpy())
         next_q_target = self.q_net_target(next_obs)
         next_q_online = self.q_net(next_obs) if self.double_q else next_q_target
-        return double_q_target(next_q_online, next_q_target, replay_data.behaviour_rewards,
-                               replay_data.behaviour_dones, replay_data.behaviour_discounts, valid_actions=valid_actions)
+        return double_q_target(next_q_online, next_q_target, rewards, dones, discounts, valid_actions=valid_actions)
 
     # ------------------------------------------------------- action selection
 
