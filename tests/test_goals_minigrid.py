@@ -262,8 +262,9 @@ def test_plan_of_a_state_that_needs_the_key_in_hand() -> None:
 
 def test_choosable_subgoals_are_one_skill_away() -> None:
     """The meta-controller's mask: a sub-goal already achieved is not choosable; with the same carried object
-    only objects one interacts with; a change of what is carried only as one pick-up (then facing the emptied
-    cell) or one drop (then facing the dropped object); success always."""
+    only objects one interacts with; a change of what is carried only as a pick-up of the object in front (then
+    facing the emptied cell) or a drop onto the empty cell in front (then facing the dropped object); success
+    always."""
     space = MiniGridGoalSpace()
     key_, wall, empty, door, goal = (OBJECT_TO_IDX[name] for name in ("key", "wall", "empty", "door", "goal"))
     facing_key = (empty, key_, 0)
@@ -276,18 +277,28 @@ def test_choosable_subgoals_are_one_skill_away() -> None:
     assert space.choosable(facing_key, (empty, door, 2))
     assert space.choosable(facing_key, (empty, goal, 0))
     assert space.choosable(facing_key, SUCCESS_KEY)
+    facing_wall = (empty, wall, 0)
+    assert not space.choosable(facing_wall, (key_, empty, 0))  # walking to the key and picking it up: two skills
+    assert space.choosable(facing_wall, facing_key)
+    assert not space.choosable((empty, door, 2), (key_, empty, 0))  # a door cannot be picked up
+    assert not space.choosable((empty, goal, 0), (key_, empty, 0))
     carrying = (key_, wall, 0)
     assert not space.choosable(carrying, (key_, empty, 0))  # already carrying it: just a turn
     assert space.choosable(carrying, (key_, door, 2))  # walking to the locked door with the key
     assert space.choosable((key_, door, 2), (key_, door, 0))  # opening it
-    assert space.choosable(carrying, (empty, key_, 0))  # dropping it: the key lies in front
-    assert not space.choosable(carrying, (empty, empty, 0))  # dropping it, then turning away
+    assert not space.choosable(carrying, (empty, key_, 0))  # a wall in front: turning, then dropping it
+    assert space.choosable((key_, empty, 0), (empty, key_, 0))  # dropping it: the key lies in front
+    assert not space.choosable((key_, empty, 0), (empty, empty, 0))  # dropping it, then turning away
+    assert not space.choosable(carrying, (empty, empty, 0))
     assert not space.choosable(carrying, (empty, door, 2))
     assert not space.choosable(SUCCESS_KEY, SUCCESS_KEY)
     assert space.choosable(SUCCESS_KEY, facing_key)
     colored = MiniGridGoalSpace(use_color=True)  # (carried, its colour, front, its colour, state)
     assert colored.choosable((empty, 0, key_, 4, 0), (key_, 4, empty, 0, 0))
+    assert not colored.choosable((empty, 0, key_, 4, 0), (key_, 1, empty, 0, 0))  # the key in front is yellow, not green
     assert not colored.choosable((empty, 0, key_, 4, 0), (key_, 4, door, 4, 2))
+    assert colored.choosable((key_, 4, empty, 0, 0), (empty, 0, key_, 4, 0))
+    assert not colored.choosable((key_, 4, empty, 0, 0), (empty, 0, key_, 1, 0))
 
 
 def test_features_are_one_hots_of_carried_front_and_the_objects_present() -> None:

@@ -8,6 +8,7 @@ from typing import Any
 
 import gymnasium as gym
 import minigrid  # noqa: F401  (registers the MiniGrid envs)
+from minigrid.core.constants import OBJECT_TO_IDX
 import numpy as np
 import pytest
 import torch as th
@@ -478,6 +479,40 @@ def test_relabelled_step_at_the_time_limit_is_a_timeout() -> None:
     assert not other.timeouts[previous, 0]
 
 
+def test_active_subpolicy_stores_a_give_up_as_a_timeout_and_a_failed_episode_end_as_eq5_minus_one() -> None:
+    """Eq. 5's -1 is for the env's own terminal function: a try cut by ``max_subgoal_steps`` (or by the
+    env's time limit) is a timeout in the acting subpolicy's buffer (bootstrapped, pseudo-reward 0), while
+    an episode that terminates without reaching the sub-goal is a terminal -1."""
+    carrying_a_key = observations(EMPTY)[0].copy()
+    center = carrying_a_key.shape[0] // 2
+    carrying_a_key[center, center] = (OBJECT_TO_IDX["key"], 0, 0)  # "carrying a key": never reached in an empty room
+    model = make_model(EMPTY, use_curiosity=False, discovery="none", max_subgoal_steps=3, subgoals=[carrying_a_key])
+    hierarchy = model.hierarchy
+    own = model.subpolicies[0].model.replay_buffer
+    hierarchy.reset(seed=0)
+    before = own.size()
+    _, _, terminated, truncated, info = hierarchy.step(0)
+    assert not (terminated or truncated or info["subgoal_reached"]) and info["primitive_steps"] == 3
+    last = (own.pos - 1) % own.buffer_size
+    assert own.size() == before + 3
+    assert bool(own.timeouts[last, 0]) and own.rewards[last, 0] == pytest.approx(0.0)
+    assert not own.timeouts[(last - 1) % own.buffer_size, 0] and not own.dones[(last - 1) % own.buffer_size, 0]
+    # an episode that ends on the goal square without reaching the sub-goal: -1, terminal, not a timeout
+    base = hierarchy.env.unwrapped
+    for _ in range(20):
+        hierarchy.reset(seed=1)
+        base.agent_pos = (base.width - 3, base.height - 2)  # left of the goal square
+        base.agent_dir = 0
+        hierarchy._obs = hierarchy.env.observation(None)
+        model.subpolicies[0].act = lambda obs, deterministic=False: np.asarray(2)  # forward
+        _, reward, terminated, _, info = hierarchy.step(0)
+        if terminated:
+            break
+    assert terminated and reward > 0 and not info["subgoal_reached"]
+    last = (own.pos - 1) % own.buffer_size
+    assert own.rewards[last, 0] == pytest.approx(-1.0) and own.dones[last, 0] and not own.timeouts[last, 0]
+
+
 def test_with_curiosity_intrinsic_rewards_are_not_all_zero() -> None:
     model = make_model(EMPTY)
     model.learn(400)
@@ -535,7 +570,7 @@ def test_meta_controller_chooses_only_choosable_subgoals() -> None:
         return step(action)
 
     hierarchy.step = checked_step
-    model.learn(1_500)
+    model.learn(3_000)
     assert len(model.subgoals) >= 3
     assert sum(any_allowed for any_allowed, _ in choices) > 10
     assert all(chosen for any_allowed, chosen in choices if any_allowed)

@@ -30,6 +30,8 @@ EMPTY = OBJECT_TO_IDX["empty"]
 IDX_TO_STATE = {idx: name for name, idx in STATE_TO_IDX.items()}
 #: objects the agent interacts with: facing one of them is a milestone of a plan
 INTERACTIVE = {OBJECT_TO_IDX[name] for name in ("key", "ball", "box", "door", "goal")}
+#: objects the agent can pick up
+PICKABLE = {OBJECT_TO_IDX[name] for name in ("key", "ball", "box")}
 MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
 N_OBJECTS, N_COLORS, N_STATES = len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE_TO_IDX)
 
@@ -123,8 +125,9 @@ class MiniGridGoalSpace(GoalSpace):
 
     def choosable(self, key: Hashable, goal_key: Hashable) -> bool:
         """Not achieved in the state, and one skill away from it: with the same carried object, facing an
-        object one interacts with (walk there, or open the door in front); with a different one, a single
-        pick-up (the agent then faces the emptied cell) or a single drop (it then faces what it dropped).
+        object one interacts with (walk there, or open the door in front); with a different one, a pick-up of
+        the object in front (the agent then faces the emptied cell) or a drop onto the empty cell in front
+        (it then faces what it dropped): walking to the key and picking it up are two choices, not one.
         "Facing a wall / an empty cell" is never worth a choice of its own, and "carrying the key, facing the
         locked door" is not chosen before the key is carried: such choices ask a subpolicy for two skills in
         a row, and both its success rate and the meta-controller's values then mix two tasks."""
@@ -132,12 +135,15 @@ class MiniGridGoalSpace(GoalSpace):
             return False
         if key == SUCCESS_KEY or goal_key == SUCCESS_KEY:
             return True
-        carried, goal_carried, goal_front = key[0], goal_key[0], goal_key[2] if self.use_color else goal_key[1]
+        front_at = 2 if self.use_color else 1
+        carried, front = key[:front_at], key[front_at : 2 * front_at]  # (object[, colour]) carried / in front
+        goal_carried, goal_front = goal_key[:front_at], goal_key[front_at : 2 * front_at]
         if goal_carried == carried:
-            return goal_front in INTERACTIVE
-        if carried == EMPTY:
-            return goal_front == EMPTY  # picked up: the cell in front is now empty
-        return goal_carried == EMPTY and goal_front == carried  # dropped: it lies in front
+            return goal_front[0] in INTERACTIVE
+        if carried[0] == EMPTY:  # a pick-up of the object in front; the agent then faces the emptied cell
+            return front[0] in PICKABLE and goal_carried == front and goal_front[0] == EMPTY
+        # a drop onto the empty cell in front; the dropped object then lies in front
+        return front[0] == EMPTY and goal_carried[0] == EMPTY and goal_front == carried
 
     def features(self, obs: np.ndarray) -> np.ndarray:
         """What the preference predictor reads: one-hots of the carried object, the object in front and its

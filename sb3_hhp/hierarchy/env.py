@@ -2,7 +2,10 @@
 
 ``step(g)`` runs the subpolicy ``pi_g`` on the primitive env, training it online, until
 ``terminal(s, g)`` (Algorithm 1, lines 14-22): the sub-goal is reached (``done(s, g)``), the episode
-ends, or the sub-goal gives up after ``max_subgoal_steps`` primitive steps (DESIGN.md gap 5). It
+ends, or the sub-goal gives up after ``max_subgoal_steps`` primitive steps (DESIGN.md gap 5). Eq. 5's
+-1 is for the env's own terminal function (section 5.1: "the original terminal functions provided by the
+environments"); a give-up or the env's time limit is a time limit, stored as a timeout (bootstrapped, no
+-1): the step count is not in the state, so a -1 there would punish states for when they were reached. It
 returns the next state and the extrinsic return R_e collected meanwhile; the meta-controller's reward
 (eq. 3) is formed from R_e and the preference bonus when the meta-controller trains.
 
@@ -161,12 +164,14 @@ class HierarchicalEnv(gym.Env):
             key = self.goal_space.terminal_key(next_obs, float(reward), terminated)
             achieved = self.goal_space.achieved(key, goal.key)
             give_up = steps >= self.max_subgoal_steps
-            terminal = achieved or terminated or truncated or give_up
+            ended = achieved or terminated  # eq. 5's terminal(s, g): the env's own terminal function, or g reached
+            cut = (truncated or give_up) and not ended  # a time limit, the env's or the sub-goal's: not a failure state
+            terminal = ended or cut
             intrinsic = float(self.rnd.intrinsic_reward(next_obs[None])[0]) if self.rnd is not None else 0.0  # eq. 7
             if self.share_experience:
                 self._relabel(goal_id, obs, next_obs, action_t, key, intrinsic, terminated, truncated)
-            r_t = subpolicy_reward(pseudo_reward(achieved, terminal), intrinsic, self.alpha)  # eq. 5, 6 (lines 17-18)
-            subpolicy.observe(obs, next_obs, action_t, r_t, terminal)  # lines 19-20
+            r_t = subpolicy_reward(pseudo_reward(achieved, ended), intrinsic, self.alpha)  # eq. 5, 6 (lines 17-18)
+            subpolicy.observe(obs, next_obs, action_t, r_t, ended, timeout=cut)  # lines 19-20
             self.visits[key] += 1
             trace.low_obs.append(next_obs)
             trace.low_keys.append(key)

@@ -101,7 +101,7 @@ class Subpolicy:
     def store(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: float, done: bool,
               timeout: bool = False, off_policy: bool = False) -> None:
         """Add one transition to this subpolicy's buffer D_g (Algorithm 1 line 19), without training.
-        ``timeout``: the episode was cut by its time limit here (bootstrapped, but n-step returns stop).
+        ``timeout``: cut here by a time limit, the episode's or the sub-goal's (bootstrapped, but n-step returns stop).
         ``off_policy``: another subpolicy acted (relabelled experience): a prioritized buffer keeps it a
         one-step transition, outside every n-step return."""
         model = self.model
@@ -111,10 +111,12 @@ class Subpolicy:
             np.asarray([done or timeout]), [{"TimeLimit.truncated": timeout and not done, "off_policy": off_policy}],
         )
 
-    def observe(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: float, done: bool) -> None:
-        """Store one transition of its own (Algorithm 1 line 19) and take a gradient step (line 20)."""
+    def observe(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: float, done: bool,
+                timeout: bool = False) -> None:
+        """Store one transition of its own (Algorithm 1 line 19) and take a gradient step (line 20).
+        ``timeout``: its try was cut here by a time limit (the sub-goal's or the episode's), see :meth:`store`."""
         model = self.model
-        self.store(obs, next_obs, action, reward, done)
+        self.store(obs, next_obs, action, reward, done, timeout=timeout)
         self.num_steps += 1
         model.num_timesteps = self.num_steps
         model._current_progress_remaining = max(0.0, 1.0 - self.num_steps / self.exploration_steps)
