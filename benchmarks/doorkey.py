@@ -71,7 +71,7 @@ def main() -> None:
                         help="JSON dict of HhP keyword arguments (variants); subpolicy_kwargs defaults to n_steps 8, as hhp.yml")
     parser.add_argument("--tag", default="", help="name of the variant in the results")
     parser.add_argument("--out", required=True)
-    parser.add_argument("--save", default=None, help="also save the trained model here (HhP.load / DQN.load / PPO.load)")
+    parser.add_argument("--save", default=None, help="also save the model here at every evaluation (HhP.load / DQN.load / PPO.load)")
     args = parser.parse_args()
     th.set_num_threads(1)
     out = pathlib.Path(args.out)
@@ -113,6 +113,8 @@ def main() -> None:
                           subgoals=[model.goal_space.describe(goal.key) for goal in model.subgoals],
                           subgoal_success=[sub.success_rate for sub in model.subpolicies.policies])
         out.write_text(json.dumps(result, indent=2))
+        if args.save:  # the model of the latest evaluation, so a run stopped early keeps it too
+            model.save(args.save)
         print(json.dumps(result["evaluations"][-1]), flush=True)
 
     class Evaluate(BaseCallback):
@@ -124,8 +126,6 @@ def main() -> None:
     model.learn(args.steps, callback=EveryNTimesteps(args.eval_every, Evaluate()))
     if not result["evaluations"] or result["evaluations"][-1]["timesteps"] < args.steps:  # not evaluated at the end yet
         record()
-    if args.save:
-        model.save(args.save)
     print(json.dumps(result, indent=2))
 
 
