@@ -23,9 +23,10 @@ SUMMARY_KEYS = {
 
 
 def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """Run the training CLI; the generous timeout only guards against a hang on a loaded machine."""
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     return subprocess.run(
-        [sys.executable, "-m", "sb3_hhp.train", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "sb3_hhp.train", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
     )
 
 
