@@ -301,6 +301,41 @@ def test_choosable_subgoals_are_one_skill_away() -> None:
     assert not colored.choosable((key_, 4, empty, 0, 0), (empty, 0, key_, 1, 0))
 
 
+def test_walks_are_choosable_only_to_objects_in_the_grid() -> None:
+    """With what the state holds (``present``), "facing the locked door" is not a choice once the door is open
+    (nor "facing the key" once it is carried), while toggling the door in front stays one; ``present`` reads the
+    grid without the agent's cell."""
+    space = MiniGridGoalSpace()
+    key_, door, empty, goal = (OBJECT_TO_IDX[name] for name in ("key", "door", "empty", "goal"))
+    locked, opened = STATE_TO_IDX["locked"], STATE_TO_IDX["open"]
+    env = wrap_env(gym.make("MiniGrid-DoorKey-5x5-v0"))
+    obs, _ = env.reset(seed=0)
+    assert space.present(obs) == {(key_, 0), (door, locked), (goal, 0)}
+    base = env.unwrapped
+    (kx, ky), = [(x, y) for x in range(base.width) for y in range(base.height) if base.grid.get(x, y) is not None
+                 and base.grid.get(x, y).type == "key"]
+    base.carrying = base.grid.get(kx, ky)
+    base.grid.set(kx, ky, None)
+    door_cell = next(base.grid.get(x, y) for x in range(base.width) for y in range(base.height)
+                     if base.grid.get(x, y) is not None and base.grid.get(x, y).type == "door")
+    door_cell.is_locked, door_cell.is_open = False, True
+    present = space.present(env.observation(None))
+    assert present == {(door, opened), (goal, 0)}  # the carried key is in the agent's cell: not "present"
+    carrying = (key_, empty, 0)
+    assert not space.choosable(carrying, (key_, door, locked), present)
+    assert space.choosable(carrying, (key_, door, locked))  # without present: the key-only rule
+    assert space.choosable(carrying, (key_, door, opened), present)
+    assert space.choosable(carrying, (key_, goal, 0), present)
+    assert not space.choosable((empty, empty, 0), (empty, key_, 0), present)  # no key on the floor
+    with_locked_door = frozenset({(door, locked), (goal, 0)})
+    assert space.choosable((key_, door, locked), (key_, door, opened), with_locked_door)  # a toggle of the door in front
+    assert not space.choosable((key_, empty, 0), (key_, door, opened), with_locked_door)  # walking to an open door: none
+    colored = MiniGridGoalSpace(use_color=True)
+    assert colored.present(obs) == {(key_, 4, 0), (door, 4, locked), (goal, 1, 0)}
+    assert not colored.choosable((empty, 0, empty, 0, 0), (empty, 0, key_, 1, 0), colored.present(obs))  # no green key: the key is yellow
+    assert colored.choosable((empty, 0, empty, 0, 0), (empty, 0, key_, 4, 0), colored.present(obs))
+
+
 def test_features_are_one_hots_of_carried_front_and_the_objects_present() -> None:
     """The predictor's description of a state: carried object, object in front, its state, then the (object,
     state) pairs present anywhere; two layouts of the same situation get the same description."""

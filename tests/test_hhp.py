@@ -565,7 +565,8 @@ def test_meta_controller_chooses_only_choosable_subgoals() -> None:
     def checked_step(action):
         if hierarchy.subgoals:
             key = space.key(hierarchy._obs)
-            allowed = [space.choosable(key, goal.key) for goal in hierarchy.subgoals]
+            present = space.present(hierarchy._obs)
+            allowed = [space.choosable(key, goal.key, present) for goal in hierarchy.subgoals]
             choices.append((any(allowed), allowed[int(action)]))
         return step(action)
 
@@ -577,7 +578,7 @@ def test_meta_controller_chooses_only_choosable_subgoals() -> None:
     goal_keys = [goal.key for goal in model.subgoals]
     states = observations()
     mask = model.action_mask(states)
-    expected = np.array([[space.choosable(space.key(obs), key) for key in goal_keys] for obs in states])
+    expected = np.array([[space.choosable(space.key(obs), key, space.present(obs)) for key in goal_keys] for obs in states])
     expected[~expected.any(axis=1)] = True  # a state where nothing is choosable keeps every sub-goal
     np.testing.assert_array_equal(mask[:, : len(goal_keys)], expected)
     assert not mask[:, len(goal_keys):].any()

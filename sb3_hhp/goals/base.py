@@ -42,11 +42,17 @@ class GoalSpace(ABC):
         """``done(s, g)``: the state's key equals the sub-goal's key."""
         return key == goal_key
 
-    def choosable(self, key: Hashable, goal_key: Hashable) -> bool:
+    def choosable(self, key: Hashable, goal_key: Hashable, present: Optional[frozenset] = None) -> bool:
         """Whether the meta-controller may choose ``goal_key`` in a state of key ``key`` (with
         ``mask_subgoals``): not when it is already achieved there, since running its subpolicy would
-        only leave the sub-goal to come back to it. Domains may rule out more."""
+        only leave the sub-goal to come back to it. Domains may rule out more. ``present``: what
+        :meth:`present` says of the state (None: unknown)."""
         return not self.achieved(key, goal_key)
+
+    def present(self, obs: np.ndarray) -> Optional[frozenset]:
+        """What is in the state beyond its key, as far as :meth:`choosable` uses it (None: nothing; the
+        default). States with equal keys and equal ``present`` get the same mask."""
+        return None
 
     def features(self, obs: np.ndarray) -> Optional[np.ndarray]:
         """A compact description of a batch of observations ``(B, *obs_shape)`` as float vectors ``(B, F)``

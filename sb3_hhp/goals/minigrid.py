@@ -123,11 +123,25 @@ class MiniGridGoalSpace(GoalSpace):
         carried, front = key[0], key[2] if self.use_color else key[1]
         return front in INTERACTIVE or (carried_before is not None and carried != carried_before)
 
-    def choosable(self, key: Hashable, goal_key: Hashable) -> bool:
+    def present(self, obs: np.ndarray) -> frozenset:
+        """The objects in the grid, each as (object, state), or (object, colour, state) with ``use_color``; the
+        agent's cell (the carried object) is left out."""
+        obs = np.asarray(obs)
+        center = obs.shape[0] // 2
+        cells = obs.reshape(-1, 3)
+        keep = np.ones(len(cells), dtype=bool)
+        keep[center * obs.shape[1] + center] = False
+        cells = cells[keep & np.isin(cells[:, 0], list(INTERACTIVE))]
+        columns = (0, 1, 2) if self.use_color else (0, 2)
+        return frozenset(map(tuple, np.unique(cells[:, columns], axis=0).tolist()))
+
+    def choosable(self, key: Hashable, goal_key: Hashable, present: Optional[frozenset] = None) -> bool:
         """Not achieved in the state, and one skill away from it: with the same carried object, facing an
         object one interacts with (walk there, or open the door in front); with a different one, a pick-up of
         the object in front (the agent then faces the emptied cell) or a drop onto the empty cell in front
-        (it then faces what it dropped): walking to the key and picking it up are two choices, not one.
+        (it then faces what it dropped): walking to the key and picking it up are two choices, not one. With
+        ``present`` (:meth:`present`), a walk is choosable only to an object in that state in the grid ("facing
+        the locked door" not once it is open), a toggle of the object in front always.
         "Facing a wall / an empty cell" is never worth a choice of its own, and "carrying the key, facing the
         locked door" is not chosen before the key is carried: such choices ask a subpolicy for two skills in
         a row, and both its success rate and the meta-controller's values then mix two tasks."""
@@ -139,7 +153,11 @@ class MiniGridGoalSpace(GoalSpace):
         carried, front = key[:front_at], key[front_at : 2 * front_at]  # (object[, colour]) carried / in front
         goal_carried, goal_front = goal_key[:front_at], goal_key[front_at : 2 * front_at]
         if goal_carried == carried:
-            return goal_front[0] in INTERACTIVE
+            if goal_front[0] not in INTERACTIVE:
+                return False
+            # walk to an object that is in the grid, or toggle the one in front (a door: only its state changes)
+            goal_object = goal_key[front_at:]  # (object[, colour], state)
+            return present is None or goal_object in present or goal_front == front
         if carried[0] == EMPTY:  # a pick-up of the object in front; the agent then faces the emptied cell
             return front[0] in PICKABLE and goal_carried == front and goal_front[0] == EMPTY
         # a drop onto the empty cell in front; the dropped object then lies in front

@@ -341,7 +341,7 @@ class HhP(DoubleDQN):
         if not hasattr(self, "consumed_query_ids"):
             self.consumed_query_ids: set[str] = set()
         self.pending_queries: dict[str, Any] = {}
-        self._mask_cache: dict[Any, np.ndarray] = {}  # state key -> choosable sub-goals, emptied when G changes
+        self._mask_cache: dict[Any, np.ndarray] = {}  # (state key, present) -> choosable sub-goals, emptied when G changes
         self.recent_choices: deque = deque(maxlen=1_000)
         self.last_predictor_stats: dict[str, float] = {}
         self.last_confidences: np.ndarray = np.zeros(0)
@@ -406,13 +406,13 @@ class HhP(DoubleDQN):
         goal_keys = [goal.key for goal in self.subgoals]
         rows = np.empty((len(batch), len(valid)), dtype=bool)
         for i, obs in enumerate(batch):
-            key = self.goal_space.key(obs)
-            row = self._mask_cache.get(key)
+            key, present = self.goal_space.key(obs), self.goal_space.present(obs)
+            row = self._mask_cache.get((key, present))
             if row is None:
                 row = valid.copy()
-                row[: len(goal_keys)] = [self.goal_space.choosable(key, goal_key) for goal_key in goal_keys]
+                row[: len(goal_keys)] = [self.goal_space.choosable(key, goal_key, present) for goal_key in goal_keys]
                 row = row if row.any() else valid
-                self._mask_cache[key] = row
+                self._mask_cache[(key, present)] = row
             rows[i] = row
         return rows
 
