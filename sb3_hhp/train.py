@@ -225,6 +225,18 @@ def register() -> None:
 # ---------------------------------------------------------------------- callbacks and experiment manager
 
 
+class EveryMultipleOfTimesteps(EveryNTimesteps):
+    """SB3's ``EveryNTimesteps``, triggered at the first step past each multiple of ``n_steps``: a sub-goal
+    choice takes many primitive steps, so counting from the last trigger would drift later each time (a run
+    of 3,000 steps evaluated every 1,500 would miss its second evaluation after a first one at 1,520)."""
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps - self.last_time_trigger >= self.n_steps:
+            self.last_time_trigger = (self.num_timesteps // self.n_steps) * self.n_steps
+            return self._on_event()
+        return True
+
+
 def every_primitive_steps(callback: BaseCallback, n_steps: int) -> BaseCallback:
     """Run ``callback`` every ``n_steps`` primitive env steps instead of every ``n`` sub-goal choices.
 
@@ -235,7 +247,7 @@ def every_primitive_steps(callback: BaseCallback, n_steps: int) -> BaseCallback:
         callback.eval_freq = 1
     elif isinstance(callback, CheckpointCallback):
         callback.save_freq = 1
-    return EveryNTimesteps(max(int(n_steps), 1), callback)
+    return EveryMultipleOfTimesteps(max(int(n_steps), 1), callback)
 
 
 def _primitive_step_trial_eval_callback() -> type:
