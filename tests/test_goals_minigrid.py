@@ -9,6 +9,7 @@ from minigrid.core.constants import COLORS, DIR_TO_VEC, OBJECT_TO_IDX, STATE_TO_
 from minigrid.core.world_object import Ball, Key
 
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
+from sb3_hhp.goals.minigrid import GOAL_OUT_OF_REACH
 from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query
 from sb3_hhp.oracles.scripted import plan_keys
 
@@ -301,39 +302,77 @@ def test_choosable_subgoals_are_one_skill_away() -> None:
     assert not colored.choosable((key_, 4, empty, 0, 0), (empty, 0, key_, 1, 0))
 
 
-def test_walks_are_choosable_only_to_objects_in_the_grid() -> None:
-    """With what the state holds (``present``), "facing the locked door" is not a choice once the door is open
-    (nor "facing the key" once it is carried), while toggling the door in front stays one; ``present`` reads the
-    grid without the agent's cell."""
+def test_walks_are_choosable_only_to_objects_within_reach() -> None:
+    """With what the state holds (``present``), a walk is a choice only to an object the agent can reach without
+    opening anything: not "facing the locked door" while the key lies in the only way to it, nor once the door is
+    open, nor "facing the key" once it is carried; "task solved" only once the goal square is within reach;
+    toggling the door in front stays a choice. ``present`` leaves out the agent's cell."""
     space = MiniGridGoalSpace()
     key_, door, empty, goal = (OBJECT_TO_IDX[name] for name in ("key", "door", "empty", "goal"))
     locked, opened = STATE_TO_IDX["locked"], STATE_TO_IDX["open"]
     env = wrap_env(gym.make("MiniGrid-DoorKey-5x5-v0"))
     obs, _ = env.reset(seed=0)
-    assert space.present(obs) == {(key_, 0), (door, locked), (goal, 0)}
+    # this layout: the key lies in the one cell next to the locked door, the goal behind the door
+    assert space.present(obs) == {(key_, 0), GOAL_OUT_OF_REACH}
+    start = space.key(obs)
+    assert space.choosable(start, (empty, key_, 0), space.present(obs))
+    assert not space.choosable(start, SUCCESS_KEY, space.present(obs))
+    assert space.choosable(start, SUCCESS_KEY)  # without present: always
     base = env.unwrapped
     (kx, ky), = [(x, y) for x in range(base.width) for y in range(base.height) if base.grid.get(x, y) is not None
                  and base.grid.get(x, y).type == "key"]
     base.carrying = base.grid.get(kx, ky)
     base.grid.set(kx, ky, None)
+    carrying = (key_, empty, 0)
+    present = space.present(env.observation(None))
+    assert present == {(door, locked), GOAL_OUT_OF_REACH}  # the carried key is in the agent's cell: not "present"
+    assert space.choosable(carrying, (key_, door, locked), present)
+    assert not space.choosable(carrying, SUCCESS_KEY, present)
     door_cell = next(base.grid.get(x, y) for x in range(base.width) for y in range(base.height)
                      if base.grid.get(x, y) is not None and base.grid.get(x, y).type == "door")
     door_cell.is_locked, door_cell.is_open = False, True
     present = space.present(env.observation(None))
-    assert present == {(door, opened), (goal, 0)}  # the carried key is in the agent's cell: not "present"
-    carrying = (key_, empty, 0)
+    assert present == {(door, opened), (goal, 0)}
     assert not space.choosable(carrying, (key_, door, locked), present)
     assert space.choosable(carrying, (key_, door, locked))  # without present: the key-only rule
     assert space.choosable(carrying, (key_, door, opened), present)
     assert space.choosable(carrying, (key_, goal, 0), present)
+    assert space.choosable(carrying, SUCCESS_KEY, present)
     assert not space.choosable((empty, empty, 0), (empty, key_, 0), present)  # no key on the floor
-    with_locked_door = frozenset({(door, locked), (goal, 0)})
+    with_locked_door = frozenset({(door, locked), GOAL_OUT_OF_REACH})
     assert space.choosable((key_, door, locked), (key_, door, opened), with_locked_door)  # a toggle of the door in front
     assert not space.choosable((key_, empty, 0), (key_, door, opened), with_locked_door)  # walking to an open door: none
     colored = MiniGridGoalSpace(use_color=True)
-    assert colored.present(obs) == {(key_, 4, 0), (door, 4, locked), (goal, 1, 0)}
+    assert colored.present(obs) == {(key_, 4, 0), GOAL_OUT_OF_REACH}
     assert not colored.choosable((empty, 0, empty, 0, 0), (empty, 0, key_, 1, 0), colored.present(obs))  # no green key: the key is yellow
     assert colored.choosable((empty, 0, empty, 0, 0), (empty, 0, key_, 4, 0), colored.present(obs))
+
+
+def test_within_reach_is_a_flood_fill_through_passable_cells() -> None:
+    """On a hand-made egocentric grid: walls and a locked door stop the fill, an open door and the goal square
+    let it through, an object next to a reached cell counts (the agent faces it from there), one behind a wall
+    does not, and a grid with no goal square never reports one out of reach."""
+    space = MiniGridGoalSpace()
+    wall, key_, ball, door, goal = (OBJECT_TO_IDX[name] for name in ("wall", "key", "ball", "door", "goal"))
+    empty = OBJECT_TO_IDX["empty"]
+    locked, opened = STATE_TO_IDX["locked"], STATE_TO_IDX["open"]
+    obs = np.zeros((7, 7, 3), dtype=np.uint8)  # the agent at (3, 3)
+    obs[1:6, 1:6, 0] = empty
+    obs[:, 0, 0] = obs[:, 6, 0] = obs[0, :, 0] = obs[6, :, 0] = wall
+    obs[1:6, 2, 0] = wall  # a wall across row y = 2, with a door at x = 3
+    obs[3, 2] = (door, 0, locked)
+    obs[1, 1] = (goal, 0, 0)  # behind the wall
+    obs[5, 5] = (key_, 0, 0)  # in the agent's room, in a corner
+    assert space.present(obs) == {(key_, 0), (door, locked), GOAL_OUT_OF_REACH}
+    obs[3, 2] = (door, 0, opened)
+    assert space.present(obs) == {(key_, 0), (door, opened), (goal, 0)}
+    obs[4, 1] = (ball, 0, 0)  # reached through the open door: next to (3, 1) and (5, 1)
+    assert (ball, 0) in space.present(obs)
+    obs[3, 2] = (wall, 0, 0)
+    assert space.present(obs) == {(key_, 0), GOAL_OUT_OF_REACH}
+    obs[1, 1] = (empty, 0, 0)
+    assert space.present(obs) == {(key_, 0)}  # no goal square: nothing is out of reach
+    assert space.choosable((empty, empty, 0), SUCCESS_KEY, space.present(obs))
 
 
 def test_features_are_one_hots_of_carried_front_and_the_objects_present() -> None:

@@ -20,6 +20,7 @@ from typing import Any, Optional
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from scipy import ndimage
 from minigrid.core.constants import COLOR_TO_IDX, IDX_TO_OBJECT, OBJECT_TO_IDX, STATE_TO_IDX
 from minigrid.core.grid import Grid
 from minigrid.minigrid_env import MiniGridEnv
@@ -32,6 +33,11 @@ IDX_TO_STATE = {idx: name for name, idx in STATE_TO_IDX.items()}
 INTERACTIVE = {OBJECT_TO_IDX[name] for name in ("key", "ball", "box", "door", "goal")}
 #: objects the agent can pick up
 PICKABLE = {OBJECT_TO_IDX[name] for name in ("key", "ball", "box")}
+#: cells the agent walks through (an open door too; lava ends the episode, so it is not among them)
+PASSABLE = {OBJECT_TO_IDX[name] for name in ("empty", "floor", "goal")}
+DOOR, GOAL, OPEN = OBJECT_TO_IDX["door"], OBJECT_TO_IDX["goal"], STATE_TO_IDX["open"]
+#: in :meth:`MiniGridGoalSpace.present`: the grid has a goal square, and none is within reach
+GOAL_OUT_OF_REACH = "goal out of reach"
 MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
 N_OBJECTS, N_COLORS, N_STATES = len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE_TO_IDX)
 
@@ -124,31 +130,44 @@ class MiniGridGoalSpace(GoalSpace):
         return front in INTERACTIVE or (carried_before is not None and carried != carried_before)
 
     def present(self, obs: np.ndarray) -> frozenset:
-        """The objects in the grid, each as (object, state), or (object, colour, state) with ``use_color``; the
-        agent's cell (the carried object) is left out."""
+        """The objects within reach: those the agent can walk to and face without opening anything on the way
+        (through empty cells, floor, open doors and goal squares), each as (object, state), or (object, colour,
+        state) with ``use_color``; the agent's cell (the carried object) is left out. When the grid has a goal
+        square and none is within reach, the set also holds :data:`GOAL_OUT_OF_REACH`."""
         obs = np.asarray(obs)
         center = obs.shape[0] // 2
-        cells = obs.reshape(-1, 3)
-        keep = np.ones(len(cells), dtype=bool)
-        keep[center * obs.shape[1] + center] = False
-        cells = cells[keep & np.isin(cells[:, 0], list(INTERACTIVE))]
+        objects, states = obs[..., 0], obs[..., 2]
+        passable = np.isin(objects, list(PASSABLE)) | ((objects == DOOR) & (states == OPEN))
+        passable[center, center] = True
+        regions, _ = ndimage.label(passable)  # 4-connected
+        reached = regions == regions[center, center]
+        near = ndimage.binary_dilation(reached)  # a cell next to a reached one can be faced
+        near[center, center] = False
+        interactive = np.isin(objects, list(INTERACTIVE))
         columns = (0, 1, 2) if self.use_color else (0, 2)
-        return frozenset(map(tuple, np.unique(cells[:, columns], axis=0).tolist()))
+        cells = obs[near & interactive][:, columns]
+        within = frozenset(map(tuple, np.unique(cells, axis=0).tolist()))
+        if (objects == GOAL).any() and not (cells[:, 0] == GOAL).any():
+            within |= {GOAL_OUT_OF_REACH}
+        return within
 
     def choosable(self, key: Hashable, goal_key: Hashable, present: Optional[frozenset] = None) -> bool:
         """Not achieved in the state, and one skill away from it: with the same carried object, facing an
         object one interacts with (walk there, or open the door in front); with a different one, a pick-up of
         the object in front (the agent then faces the emptied cell) or a drop onto the empty cell in front
         (it then faces what it dropped): walking to the key and picking it up are two choices, not one. With
-        ``present`` (:meth:`present`), a walk is choosable only to an object in that state in the grid ("facing
-        the locked door" not once it is open), a toggle of the object in front always.
+        ``present`` (:meth:`present`), a walk is choosable only to an object within reach in that state ("facing
+        the locked door" not once it is open, nothing behind a locked door), a toggle of the object in front
+        always, and "task solved" only while a goal square is within reach (or the grid has none).
         "Facing a wall / an empty cell" is never worth a choice of its own, and "carrying the key, facing the
         locked door" is not chosen before the key is carried: such choices ask a subpolicy for two skills in
         a row, and both its success rate and the meta-controller's values then mix two tasks."""
         if not super().choosable(key, goal_key):
             return False
-        if key == SUCCESS_KEY or goal_key == SUCCESS_KEY:
+        if key == SUCCESS_KEY:
             return True
+        if goal_key == SUCCESS_KEY:  # not while the goal square is out of reach (behind a locked door)
+            return present is None or GOAL_OUT_OF_REACH not in present
         front_at = 2 if self.use_color else 1
         carried, front = key[:front_at], key[front_at : 2 * front_at]  # (object[, colour]) carried / in front
         goal_carried, goal_front = goal_key[:front_at], goal_key[front_at : 2 * front_at]
