@@ -304,6 +304,8 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
     assert _predictions(with_env, sequence) == expected
     assert with_env.num_timesteps == trained.num_timesteps
     assert with_env.hierarchy.visits == trained.hierarchy.visits
+    assert len(trained.recent_choices) > 0 and list(with_env.recent_choices) == list(trained.recent_choices)
+    assert [r["chosen_recently"] for r in no_env.subgoal_records()] == [r["chosen_recently"] for r in trained.subgoal_records()]
 
     # training goes on from where it stopped
     before = with_env.num_timesteps

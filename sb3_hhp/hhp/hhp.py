@@ -688,6 +688,7 @@ class HhP(DoubleDQN):
             "query_selector": self.query_selector.state_dict(),
             "return_normalizer": self.return_normalizer.state_dict(),
             "consumed_query_ids": sorted(self.consumed_query_ids),
+            "recent_choices": list(self.recent_choices),
             "oracle": self.oracle_spec if isinstance(self.oracle_spec, str) or self.oracle_spec is None else "none",
         }
 
@@ -710,6 +711,7 @@ class HhP(DoubleDQN):
         self.query_selector.load_state_dict(state["query_selector"])
         self.return_normalizer.load_state_dict(state["return_normalizer"])
         self.consumed_query_ids = set(state["consumed_query_ids"])
+        self.recent_choices = deque(state.get("recent_choices", []), maxlen=self.recent_choices.maxlen)  # absent in older saves
         self._sync_action_space()
 
     def save(self, path: Any, exclude: Optional[list[str]] = None, include: Optional[list[str]] = None) -> None:
