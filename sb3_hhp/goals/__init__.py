@@ -5,9 +5,11 @@ from typing import Union
 import gymnasium as gym
 
 from sb3_hhp.goals.base import SUCCESS_KEY, GoalSpace
+from sb3_hhp.goals.image import ImageGoalSpace
 from sb3_hhp.goals.minigrid import MiniGridEgocentricObs, MiniGridGoalSpace, find_minigrid
 
-GOAL_SPACES: dict[str, type[GoalSpace]] = {"minigrid": MiniGridGoalSpace}
+#: in the order "auto" tries them
+GOAL_SPACES: dict[str, type[GoalSpace]] = {"minigrid": MiniGridGoalSpace, "image": ImageGoalSpace}
 
 
 def wrap_env(env: gym.Env) -> gym.Env:
@@ -31,9 +33,11 @@ def make_goal_space(goal_space: Union[str, GoalSpace], env: gym.Env) -> GoalSpac
         raise ValueError(
             f"No goal space supports this env (observation space {env.observation_space}). "
             "HhP supports MiniGrid tasks wrapped with sb3_hhp.goals.MiniGridEgocentricObs "
-            "(sb3_hhp.goals.wrap_env(env) does it); pass goal_space= a GoalSpace for other envs."
+            "(sb3_hhp.goals.wrap_env(env) does it) and fixed-layout envs that observe uint8 images of at least "
+            "8x8 pixels (goal_space='image'; Atari: stable_baselines3.common.atari_wrappers.AtariWrapper); "
+            "pass goal_space= a GoalSpace for other envs."
         )
     return candidates[0]
 
 
-__all__ = ["GOAL_SPACES", "SUCCESS_KEY", "GoalSpace", "MiniGridEgocentricObs", "MiniGridGoalSpace", "make_goal_space", "wrap_env"]
+__all__ = ["GOAL_SPACES", "SUCCESS_KEY", "GoalSpace", "ImageGoalSpace", "MiniGridEgocentricObs", "MiniGridGoalSpace", "make_goal_space", "wrap_env"]

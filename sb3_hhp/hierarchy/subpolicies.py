@@ -17,6 +17,7 @@ from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.utils import LinearSchedule
+from stable_baselines3.common.vec_env import VecTransposeImage
 
 from sb3_hhp.dqn.dqn import DoubleDQN
 
@@ -75,10 +76,16 @@ class Subpolicy:
         self.attempts = 0
         self.recent: list[bool] = []
         self._discrete = isinstance(model.action_space, spaces.Discrete)
+        # SB3 builds image learners channel first (VecTransposeImage); HierarchicalEnv hands over env observations
+        self._transpose = isinstance(model.env, VecTransposeImage)
         if self._discrete:
             model.exploration_schedule = LinearSchedule(
                 model.exploration_initial_eps, model.exploration_final_eps, end_fraction=1.0  # type: ignore[attr-defined]
             )
+
+    def _model_obs(self, batch: np.ndarray) -> np.ndarray:
+        """A batch of env observations in the layout the model was built for."""
+        return VecTransposeImage.transpose_image(batch) if self._transpose else batch
 
     @property
     def exploration_rate(self) -> float:
@@ -91,7 +98,7 @@ class Subpolicy:
             if not deterministic and model.action_space.np_random.random() < self.exploration_rate:
                 return np.asarray(model.action_space.sample())
             with th.no_grad():
-                obs_tensor = th.as_tensor(obs[None], device=model.device)
+                obs_tensor = th.as_tensor(self._model_obs(obs[None]), device=model.device)
                 return model.policy._predict(obs_tensor, deterministic=True).cpu().numpy()[0]
         action, _ = model.predict(obs, deterministic=True)
         if not deterministic and model.action_noise is not None:
@@ -107,7 +114,7 @@ class Subpolicy:
         model = self.model
         buffer_action = action if self._discrete else model.policy.scale_action(action)
         model.replay_buffer.add(  # type: ignore[union-attr]
-            obs[None], next_obs[None], np.asarray([buffer_action]), np.asarray([reward], np.float32),
+            self._model_obs(obs[None]), self._model_obs(next_obs[None]), np.asarray([buffer_action]), np.asarray([reward], np.float32),
             np.asarray([done or timeout]), [{"TimeLimit.truncated": timeout and not done, "off_policy": off_policy}],
         )
 

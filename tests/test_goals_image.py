@@ -1,0 +1,140 @@
+"""The image goal space (fixed-layout image envs): cells as keys, SSIM as the discovery gate, HhP end to end."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.evaluation import evaluate_policy
+
+from sb3_hhp import HhP
+from sb3_hhp.goals import ImageGoalSpace, MiniGridGoalSpace, make_goal_space, wrap_env
+from sb3_hhp.goals.similarity import ssim_to_set
+from sb3_hhp.oracles.synthetic import SyntheticOracle
+
+
+class PixelRoom(gym.Env):
+    """A fixed 5x5 room drawn as a 40x40 grayscale image: the agent (white square) walks to the goal (gray corner)."""
+
+    metadata = {"render_modes": ["rgb_array"]}
+
+    def __init__(self, size: int = 5, cell: int = 8, max_steps: int = 40, render_mode=None) -> None:
+        self.size, self.cell, self.max_steps, self.render_mode = size, cell, max_steps, render_mode
+        self.observation_space = spaces.Box(0, 255, (size * cell, size * cell, 1), np.uint8)
+        self.action_space = spaces.Discrete(4)
+        self.pos, self.t = (0, 0), 0
+
+    def _obs(self) -> np.ndarray:
+        image = np.zeros(self.observation_space.shape, np.uint8)
+        c, last = self.cell, self.size - 1
+        image[last * c :, last * c :] = 128
+        y, x = self.pos
+        image[y * c : (y + 1) * c, x * c : (x + 1) * c] = 255
+        return image
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.pos, self.t = (0, 0), 0
+        return self._obs(), {}
+
+    def step(self, action):
+        dy, dx = [(-1, 0), (1, 0), (0, -1), (0, 1)][int(action)]
+        y, x = self.pos
+        self.pos = (min(max(y + dy, 0), self.size - 1), min(max(x + dx, 0), self.size - 1))
+        self.t += 1
+        solved = self.pos == (self.size - 1, self.size - 1)
+        return self._obs(), float(solved), solved, self.t >= self.max_steps and not solved, {}
+
+    def render(self) -> np.ndarray:
+        return np.repeat(self._obs(), 3, axis=-1)
+
+
+def test_key_is_the_frame_shrunk_by_area_and_quantised() -> None:
+    """A cell is the area average over each block, times levels // 256: a frame of uniform blocks gives back the
+    blocks' levels exactly, and the key is the same for frames that differ below the cell's resolution."""
+    space = ImageGoalSpace(cell_shape=(2, 4), levels=8)
+    blocks = np.array([[0, 40, 100, 255], [31, 32, 200, 224]], dtype=np.uint8)
+    frame = np.kron(blocks, np.ones((10, 5), dtype=np.uint8))[..., None]  # (20, 20, 1): blocks of 10 x 5 pixels
+    np.testing.assert_array_equal(space.cell(frame), blocks.astype(np.int64) * 8 // 256)
+    assert space.cell(frame).tolist() == [[0, 1, 3, 7], [0, 1, 6, 7]]
+    nudged = frame.copy()
+    nudged[0, 0] = 9  # one pixel: the block's mean moves by 0.18, not across a level
+    assert space.key(nudged) == space.key(frame)
+    moved = frame.copy()
+    moved[:10, :5] = 255
+    assert space.key(moved) != space.key(frame)
+    assert space.describe(space.key(frame)).startswith("cell ")
+
+
+def test_layouts_rgb_gray_and_frame_stacks() -> None:
+    """RGB frames are converted to gray; a stack of gray frames (channel last or first) is read by its last frame."""
+    space = ImageGoalSpace(cell_shape=(4, 4), levels=16)
+    rng = np.random.default_rng(0)
+    gray = rng.integers(0, 256, (16, 16), dtype=np.uint8)
+    stack_last = np.stack([np.zeros_like(gray), gray], axis=-1)  # (16, 16, 2): oldest first
+    stack_first = np.moveaxis(np.stack([np.zeros_like(gray), np.zeros_like(gray), np.zeros_like(gray), gray], -1), -1, 0)
+    rgb = np.repeat(gray[..., None], 3, axis=-1)
+    for obs in (gray, gray[..., None], stack_last, stack_first, rgb):
+        assert space.key(obs) == space.key(gray), obs.shape
+        assert space.image_of(obs).shape == (16, 16, 3)
+    np.testing.assert_array_equal(space.image_of(stack_first)[..., 0], gray)
+
+
+def test_similarity_is_ssim_of_the_frames_clipped_and_one_for_an_equal_key() -> None:
+    space = ImageGoalSpace()
+    env = PixelRoom()
+    first, _ = env.reset()
+    second, *_ = env.step(3)
+    third, *_ = env.step(1)
+    goal_obs = np.stack([first, second, third])
+    goal_keys = [space.key(o) for o in goal_obs]
+    values = space.similarity(space.key(second), second, goal_keys, goal_obs)
+    expected = np.clip(ssim_to_set(second[..., 0], goal_obs[..., 0]), 0, 1)
+    assert values[1] == 1.0
+    np.testing.assert_allclose(values[[0, 2]], expected[[0, 2]])
+    assert 0.0 < values[0] < 1.0
+    assert space.similarity(space.key(first), first, [], np.zeros((0, *first.shape), np.uint8)).shape == (0,)
+
+
+def test_supports_images_and_auto_picks_it_after_minigrid() -> None:
+    assert isinstance(make_goal_space("auto", PixelRoom()), ImageGoalSpace)
+    assert isinstance(make_goal_space("auto", wrap_env(gym.make("MiniGrid-Empty-5x5-v0"))), MiniGridGoalSpace)
+    assert not ImageGoalSpace.supports(gym.make("CartPole-v1"))
+    assert not ImageGoalSpace.supports(PixelRoom(size=1, cell=4))  # 4 x 4 pixels: too small to be a frame
+    with pytest.raises(ValueError, match="levels"):
+        ImageGoalSpace(levels=1)
+    with pytest.raises(ValueError, match="cell_shape"):
+        ImageGoalSpace(cell_shape=(0, 4))
+
+
+def test_hhp_trains_on_a_fixed_layout_image_env_with_cnn_policy(tmp_path) -> None:
+    """HhP("CnnPolicy", env) on an image env: the image goal space is chosen, the subpolicies (built channel first
+    by SB3) take the env's channel-last frames, the predictor is asked and trained on frames, evaluate_policy runs, and a saved
+    model predicts what the trained one did."""
+    th.manual_seed(0)
+    room = PixelRoom()
+    frames = [room.reset()[0]] + [room.step(action)[0] for action in (3, 3, 1, 1)]  # user sub-goals: a walk to the goal
+    model = HhP("CnnPolicy", PixelRoom(), oracle="synthetic", query_budget=5, n_masks=2, learning_starts=50, batch_size=16,
+                seed=0, subgoals=frames[2:], subpolicy_kwargs=dict(learning_starts=50, batch_size=16, buffer_size=2_000))
+    assert isinstance(model.goal_space, ImageGoalSpace)
+    model.learn(300)
+    assert model.num_timesteps >= 300 and len(model.subgoals) >= 3
+    assert model.query_selector.used > 0 and len(model.predictor) > 0  # the predictor read frames (queries, bonus)
+    assert np.asarray(model.goal_obs).shape[1:] == (40, 40, 1)  # sub-goals kept as the env's frames
+    assert sum(sub.num_steps for sub in model.subpolicies.policies) > 0
+    mean_return, _ = evaluate_policy(model, PixelRoom(), n_eval_episodes=2, warn=False)
+    assert 0.0 <= mean_return <= 1.0
+    model.save(tmp_path / "image_hhp")
+    loaded = HhP.load(tmp_path / "image_hhp", env=PixelRoom())
+    assert isinstance(loaded.oracle, SyntheticOracle)  # the one it was saved with: there is no scripted oracle for images
+    assert HhP.load(tmp_path / "image_hhp", oracle="none").oracle is None  # the caller's
+    env = PixelRoom()
+    obs, _ = env.reset()
+    state_a = state_b = None
+    start = np.ones(1, dtype=bool)
+    for _ in range(10):
+        action_a, state_a = model.predict(obs, state=state_a, episode_start=start, deterministic=True)
+        action_b, state_b = loaded.predict(obs, state=state_b, episode_start=start, deterministic=True)
+        assert int(action_a) == int(action_b)
+        obs, *_ = env.step(int(action_a))
+        start = np.zeros(1, dtype=bool)
