@@ -23,7 +23,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList, Conve
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
 from stable_baselines3.common.utils import get_device, should_collect_more_steps
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecTransposeImage
 
 from sb3_hhp.curiosity.rnd import RND
 from sb3_hhp.discovery.csd import SubgoalDiscovery
@@ -54,6 +54,8 @@ def _single_env(env: Union[GymEnv, str, None]) -> Optional[gym.Env]:
             env = gym.make(env)
         except gym.error.Error as error:
             raise ValueError(f"Unknown env id {env!r}: {error}") from error
+    if isinstance(env, VecTransposeImage):  # SB3's own layout change (RL Zoo adds it for images): SB3 adds it again
+        env = env.venv
     if isinstance(env, VecEnv):
         if not isinstance(env, DummyVecEnv) or env.num_envs != 1:
             raise ValueError(
@@ -402,7 +404,7 @@ class HhP(DoubleDQN):
         valid = self._valid_actions
         if valid is None or not self.mask_subgoals or isinstance(observations, dict):
             return valid
-        batch = np.asarray(observations).astype(self.primitive_observation_space.dtype, copy=False)
+        batch = self._env_layout(np.asarray(observations)).astype(self.primitive_observation_space.dtype, copy=False)
         goal_keys = [goal.key for goal in self.subgoals]
         rows = np.empty((len(batch), len(valid)), dtype=bool)
         for i, obs in enumerate(batch):
@@ -419,7 +421,7 @@ class HhP(DoubleDQN):
     def predictor_inputs(self, observations: np.ndarray) -> np.ndarray:
         """What the predictor reads for a batch of observations: the goal space's features, or the
         observations themselves (``predictor_input``)."""
-        observations = np.asarray(observations)
+        observations = self._env_layout(np.asarray(observations))
         return self.goal_space.features(observations) if self._predictor_reads_features else observations
 
     def add_preference(self, query: Any, label: Any) -> bool:
@@ -517,6 +519,14 @@ class HhP(DoubleDQN):
         callback.on_rollout_end()
         return RolloutReturn(num_collected_steps, num_collected_episodes, True)
 
+    def _env_layout(self, obs: np.ndarray) -> np.ndarray:
+        """Observations in the env's layout: images that come channel first (an env wrapped in SB3's
+        VecTransposeImage, as RL Zoo's evaluation envs are) are turned back to the env's channel-last frames."""
+        shape = self.primitive_observation_space.shape
+        if len(shape) == 3 and obs.shape[-3:] != shape and obs.shape[-3:] == (shape[2], shape[0], shape[1]):
+            return np.moveaxis(obs, -3, -1)
+        return obs
+
     def predict(
         self,
         observation: Union[np.ndarray, dict[str, np.ndarray]],
@@ -528,7 +538,7 @@ class HhP(DoubleDQN):
         ``evaluate_policy`` works unchanged: a new sub-goal is chosen at an episode start, when the
         current one is reached, or when it gives up after ``max_subgoal_steps`` (a deterministic
         meta-controller then takes its best *other* sub-goal)."""
-        obs = np.asarray(observation)
+        obs = self._env_layout(np.asarray(observation))
         vectorized = obs.shape != self.primitive_observation_space.shape
         batch = obs if vectorized else obs[None]
         n_envs = batch.shape[0]
@@ -755,6 +765,8 @@ class HhP(DoubleDQN):
                     raise ValueError(
                         f"{path} is a damaged HhP model: its {COMPONENTS_FILE} cannot be read ({error}); save it again with HhP.save"
                     ) from error
+                # the oracle: the caller's (HhP.load(path, oracle="web")), else the one the model was saved with
+                kwargs["oracle_spec"] = kwargs.pop("oracle") if "oracle" in kwargs else components.get("oracle", "scripted")
                 if "predictor_input" not in kwargs and '"predictor_input"' not in archive.read("data").decode("utf-8", "replace"):
                     kwargs["predictor_input"] = "observation"  # saved before the predictor could read features
         except zipfile.BadZipFile as error:
