@@ -135,6 +135,21 @@ def test_domain_entry_serves_ids_without_their_own(tmp_path: Path, capsys: pytes
 
 
 @pytest.mark.slow
+def test_atari_ids_train_from_the_atari_entry_on_frames(tmp_path: Path) -> None:
+    """An Atari id takes the atari entry (AtariWrapper frames, CnnPolicy, the image goal space), through RL Zoo,
+    whose image envs come wrapped in VecTransposeImage."""
+    summary = train.run(
+        ["--env", "ALE/Pong-v5", "--oracle", "none", "-n", "200", "--seed", "3", "--eval-episodes", "1", "--eval-freq",
+         "-1", "--num-threads", "1", "--verbose", "0", "-f", str(tmp_path),
+         "--hyperparams", "n_masks:4", "buffer_size:2000", "max_subgoal_steps:50", "learning_starts:50"]
+    )
+    assert summary is not None and summary["config_entry"] == "atari"
+    assert summary["total_timesteps"] >= 200 and summary["num_subgoals"] >= 1
+    assert all(name.startswith("cell ") or name == "task solved" for name in summary["subgoals"])
+    assert summary["mean_return"] < 0  # Pong: an untrained agent loses its points
+
+
+@pytest.mark.slow
 def test_label_server_runs_beside_training(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     summary = train.run(
         ["--env", "MiniGrid-Empty-5x5-v0", "--label-server", "--label-port", "0", "-n", "200", "--seed", "2",
