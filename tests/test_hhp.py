@@ -205,9 +205,29 @@ def test_learn_with_a_user_callback_and_progress_bar(capsys: pytest.CaptureFixtu
     assert len(calls) >= 1 and model.num_timesteps >= 1_100
 
 
+def test_max_centred_bonus_subtracts_the_best_choosable_score(trained: HhP, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With ``center_bonus="max"`` a sub-goal the mask rules out in the state does not set the level: the bonus is
+    b(s, g) - max over the choosable g' (and g itself)."""
+    replay = trained.replay_buffer.sample(8)
+    goals = replay.actions.long().flatten().numpy()
+    states = replay.observations.numpy().astype(np.uint8)
+    goal_obs = trained.goal_space.features(trained.goal_obs)
+    scores = np.stack([trained.predictor.score(trained.goal_space.features(state), goal_obs) for state in states])
+    n_goals = len(goal_obs)
+    mask = np.ones((len(states), trained.action_space.n), dtype=bool)
+    top = scores.argmax(axis=1)
+    mask[np.arange(len(states)), top] = top == goals  # rule out each state's best sub-goal unless it was chosen
+    monkeypatch.setattr(trained, "action_mask", lambda observations: mask)
+    monkeypatch.setattr(trained, "center_bonus", "max")
+    best = np.where(mask[:, :n_goals], scores, -np.inf).max(axis=1)
+    np.testing.assert_allclose(trained.preference_bonus(states, goals), scores[np.arange(len(goals)), goals] - best, atol=1e-6)
+    assert not np.allclose(best, scores.max(axis=1))
+
+
 def test_meta_reward_is_eq3_with_the_predictor_bonus(trained: HhP) -> None:
     """r^e = beta * R_e + (1 - beta) * b / sigma(R_p) (eq. 3) on a sampled batch, with b = p_hat(s, g), centred
-    over the sub-goals of the state (b - mean_g' p_hat(s, g')) when ``center_bonus``."""
+    over the sub-goals of the state (b - mean_g' p_hat(s, g')) when ``center_bonus``, or shifted by the best choosable
+    one (b - max_g' p_hat(s, g'), never positive) with ``center_bonus="max"``."""
     assert len(trained.predictor) > 0
     replay = trained.replay_buffer.sample(16)
     goals = replay.actions.long().flatten().numpy()
@@ -220,9 +240,13 @@ def test_meta_reward_is_eq3_with_the_predictor_bonus(trained: HhP) -> None:
     r_e = replay.rewards.numpy().flatten()
     beta, sigma = trained.beta, trained.return_normalizer.sigma
     assert sigma > 0
+    # "max": minus the best score among the sub-goals choosable in the state (the chosen one counts too)
+    choosable = trained.action_mask(states)[:, : len(goal_obs)] | (np.arange(len(goal_obs)) == goals[:, None])
+    best = np.where(choosable, scores, -np.inf).max(axis=1)
+    assert (chosen - best <= 1e-6).all()
     center = trained.center_bonus
     try:
-        for trained.center_bonus, bonus in ((True, chosen - scores.mean(axis=1)), (False, chosen)):
+        for trained.center_bonus, bonus in ((True, chosen - scores.mean(axis=1)), ("max", chosen - best), (False, chosen)):
             expected = beta * r_e + (1 - beta) * bonus / sigma  # eq. 3
             np.testing.assert_allclose(trained._rewards(replay).numpy().flatten(), expected, rtol=1e-4, atol=1e-5)
             assert not np.allclose(expected, beta * r_e)  # the bonus really enters
@@ -333,6 +357,7 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
         (dict(env=EMPTY, beta=1.5), r"beta must be in \[0, 1\], got 1.5"),
         (dict(env=EMPTY, beta=-0.1), r"beta must be in \[0, 1\], got -0.1"),
         (dict(env=EMPTY, dropout=1.0), r"dropout must be in \[0, 1\), got 1.0"),
+        (dict(env=EMPTY, center_bonus="median"), "center_bonus must be True / 'mean', 'max' or False, got 'median'"),
         (dict(env=EMPTY, discovery="none"), "subgoals="),
         (dict(env=EMPTY, discovery="everything"), "discovery must be"),
         (dict(env=EMPTY, share_experience=False, train_shared=True), "needs share_experience=True"),

@@ -111,7 +111,8 @@ class HhP(DoubleDQN):
     :param share_experience: every transition also trains (off-policy) the other subpolicies, relabelled with their rewards
     :param train_shared: with ``share_experience``, every subpolicy takes its gradient steps on every primitive
         step (at its own ``train_freq``), not only while it acts (see the README's Design)
-    :param center_bonus: centre the preference bonus over the sub-goals of each state (see the README's Design)
+    :param center_bonus: centre the preference bonus over the sub-goals of each state: True or "mean" subtracts
+        their mean, "max" the best choosable one's score, so that no choice is paid (see the README's Design)
     :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
         calls choosable there (:meth:`~sb3_hhp.goals.GoalSpace.choosable`: not already achieved; on MiniGrid,
         also a milestone); in acting, exploring and the TD target alike (see the README's Design)
@@ -162,7 +163,7 @@ class HhP(DoubleDQN):
         n_opt: int = 4,
         share_experience: bool = True,
         train_shared: bool = False,
-        center_bonus: bool = True,
+        center_bonus: Union[bool, str] = True,
         mask_subgoals: bool = True,
         record_images: Optional[bool] = None,
         learning_rate: Union[float, Schedule] = 1e-3,
@@ -238,6 +239,8 @@ class HhP(DoubleDQN):
         self.preference_db = preference_db
         self.oracle_kwargs = dict(oracle_kwargs or {})
         self.n_opt = n_opt
+        if center_bonus not in (True, False, "mean", "max"):
+            raise ValueError(f"center_bonus must be True / 'mean', 'max' or False, got {center_bonus!r}")
         self.center_bonus = center_bonus
         self.mask_subgoals = mask_subgoals
         self.share_experience = share_experience
@@ -455,14 +458,20 @@ class HhP(DoubleDQN):
 
     def preference_bonus(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """The preference bonus b = p_hat(s, g) (Algorithm 1 line 12), centred over the sub-goals when
-        ``center_bonus``: b(s, g) - mean_g' p_hat(s, g'). Bradley-Terry (eq. 2) fixes scores only up to a
+        ``center_bonus``: b(s, g) - mean_g' p_hat(s, g') (True or "mean"), or b(s, g) - max_g' p_hat(s, g') over
+        the sub-goals choosable in s ("max": never positive). Bradley-Terry (eq. 2) fixes scores only up to a
         per-state constant, so the uncentred level is arbitrary shaping that can pay for dawdling."""
+        mask = self.action_mask(states) if self.center_bonus == "max" else None
         goal_obs, states = self.predictor_inputs(self.goal_obs), self.predictor_inputs(states)
         if not self.center_bonus:
             return self.predictor.score(states, goal_obs[goals])
         n_goals, n_states = len(goal_obs), len(states)
         scores = self.predictor.score(np.repeat(states, n_goals, axis=0), goal_obs[np.tile(np.arange(n_goals), n_states)])
         scores = scores.reshape(n_states, n_goals)
+        if self.center_bonus == "max":
+            choosable = np.ones_like(scores, dtype=bool) if mask is None else np.broadcast_to(mask, (n_states, mask.shape[-1]))[:, :n_goals]
+            best = np.where(choosable | (np.arange(n_goals) == np.asarray(goals)[:, None]), scores, -np.inf).max(axis=1)
+            return scores[np.arange(n_states), goals] - best
         return scores[np.arange(n_states), goals] - scores.mean(axis=1)
 
     # ------------------------------------------------------------------ acting
