@@ -334,6 +334,8 @@ def test_walks_are_choosable_only_to_objects_within_reach() -> None:
     present = space.present(env.observation(None))
     assert present == {(door, opened), (goal, 0)}
     assert not space.choosable(carrying, (key_, door, locked), present)
+    assert not space.choosable((key_, door, opened), (key_, door, locked), present)  # no toggle locks a door
+    assert space.choosable((key_, door, opened), (key_, door, STATE_TO_IDX["closed"]), present)  # one closes it
     assert space.choosable(carrying, (key_, door, locked))  # without present: the key-only rule
     assert space.choosable(carrying, (key_, door, opened), present)
     assert space.choosable(carrying, (key_, goal, 0), present)

@@ -35,7 +35,7 @@ INTERACTIVE = {OBJECT_TO_IDX[name] for name in ("key", "ball", "box", "door", "g
 PICKABLE = {OBJECT_TO_IDX[name] for name in ("key", "ball", "box")}
 #: cells the agent walks through (an open door too; lava ends the episode, so it is not among them)
 PASSABLE = {OBJECT_TO_IDX[name] for name in ("empty", "floor", "goal")}
-DOOR, GOAL, OPEN = OBJECT_TO_IDX["door"], OBJECT_TO_IDX["goal"], STATE_TO_IDX["open"]
+DOOR, GOAL, OPEN, LOCKED = OBJECT_TO_IDX["door"], OBJECT_TO_IDX["goal"], STATE_TO_IDX["open"], STATE_TO_IDX["locked"]
 #: in :meth:`MiniGridGoalSpace.present`: the grid has a goal square, and none is within reach
 GOAL_OUT_OF_REACH = "goal out of reach"
 MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
@@ -176,7 +176,9 @@ class MiniGridGoalSpace(GoalSpace):
                 return False
             # walk to an object that is in the grid, or toggle the one in front (a door: only its state changes)
             goal_object = goal_key[front_at:]  # (object[, colour], state)
-            return present is None or goal_object in present or goal_front == front
+            # (a toggle opens a locked or closed door or closes an open one; it never locks one)
+            toggle = goal_front == front and goal_key[-1] != LOCKED
+            return present is None or goal_object in present or toggle
         if carried[0] == EMPTY:  # a pick-up of the object in front; the agent then faces the emptied cell
             return front[0] in PICKABLE and goal_carried == front and goal_front[0] == EMPTY
         # a drop onto the empty cell in front; the dropped object then lies in front
