@@ -83,6 +83,7 @@ class PreferenceQueryCallback(BaseCallback):
                         "goal2_key": _key_json(subgoals[second].key),
                         "goal1_name": goal_space.describe(subgoals[first].key),
                         "goal2_name": goal_space.describe(subgoals[second].key),
+                        **goal_space.query_info(states[index], subgoals[first].obs, subgoals[second].obs),
                     },
                 )
             )

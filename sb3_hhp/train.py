@@ -540,7 +540,10 @@ def check_env_id(env_id: Optional[str], gym_packages: Sequence[str] = ()) -> str
     """
     import gymnasium as gym
 
+    import gymnasium_robotics
     import rl_zoo3.import_envs  # noqa: F401  registers MiniGrid, ALE, ...
+
+    gym.register_envs(gymnasium_robotics)  # the Fetch tasks (rl_zoo3 does not register them)
 
     if not env_id:
         raise ConfigError("--env ENV is required (e.g. --env MiniGrid-DoorKey-5x5-v0)")

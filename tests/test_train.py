@@ -150,6 +150,21 @@ def test_atari_ids_train_from_the_atari_entry_on_frames(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_fetch_ids_train_from_the_fetch_entry_with_the_scripted_oracle(tmp_path: Path) -> None:
+    """A Fetch id takes the fetch entry (the flat observation, the Fetch goal space, DDPG subpolicies); the
+    scripted oracle answers from the positions; success is the env's own ``is_success``."""
+    summary = train.run(
+        ["--env", "FetchReach-v4", "--oracle", "scripted", "-n", "300", "--seed", "4", "--eval-episodes", "2",
+         "--eval-freq", "-1", "--num-threads", "1", "--verbose", "0", "-f", str(tmp_path), "--hyperparams", "n_masks:10"]
+    )
+    assert summary is not None and summary["config_entry"] == "fetch"
+    assert summary["total_timesteps"] >= 300 and summary["num_subgoals"] >= 2
+    assert summary["queries_used"] > 0  # answered by FetchScriptedOracle, which refuses questions without positions
+    assert all(name.startswith("at (") and name.endswith(") cm") for name in summary["subgoals"])
+    assert summary["mean_episode_length"] == 50 and -50 <= summary["mean_return"] <= 0
+
+
+@pytest.mark.slow
 def test_label_server_runs_beside_training(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     summary = train.run(
         ["--env", "MiniGrid-Empty-5x5-v0", "--label-server", "--label-port", "0", "-n", "200", "--seed", "2",

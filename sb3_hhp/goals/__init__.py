@@ -5,17 +5,21 @@ from typing import Union
 import gymnasium as gym
 
 from sb3_hhp.goals.base import SUCCESS_KEY, GoalSpace
+from sb3_hhp.goals.fetch import FetchFlatObs, FetchGoalSpace, find_fetch
 from sb3_hhp.goals.image import ImageGoalSpace
 from sb3_hhp.goals.minigrid import MiniGridEgocentricObs, MiniGridGoalSpace, find_minigrid
 
 #: in the order "auto" tries them
-GOAL_SPACES: dict[str, type[GoalSpace]] = {"minigrid": MiniGridGoalSpace, "image": ImageGoalSpace}
+GOAL_SPACES: dict[str, type[GoalSpace]] = {"minigrid": MiniGridGoalSpace, "fetch": FetchGoalSpace, "image": ImageGoalSpace}
 
 
 def wrap_env(env: gym.Env) -> gym.Env:
-    """Give a raw env the observation its goal space reads (MiniGrid: :class:`MiniGridEgocentricObs`)."""
+    """Give a raw env the observation its goal space reads (MiniGrid: :class:`MiniGridEgocentricObs`,
+    Fetch: :class:`FetchFlatObs`)."""
     if find_minigrid(env) is not None and not MiniGridGoalSpace.supports(env):
         return MiniGridEgocentricObs(env)
+    if find_fetch(env) is not None and isinstance(env.observation_space, gym.spaces.Dict):
+        return FetchFlatObs(env)
     return env
 
 
@@ -33,11 +37,12 @@ def make_goal_space(goal_space: Union[str, GoalSpace], env: gym.Env) -> GoalSpac
         raise ValueError(
             f"No goal space supports this env (observation space {env.observation_space}). "
             "HhP supports MiniGrid tasks wrapped with sb3_hhp.goals.MiniGridEgocentricObs "
-            "(sb3_hhp.goals.wrap_env(env) does it) and fixed-layout envs that observe uint8 images of at least "
+            "(sb3_hhp.goals.wrap_env(env) does it), gymnasium-robotics Fetch tasks wrapped with "
+            "sb3_hhp.goals.FetchFlatObs (wrap_env does it too) and fixed-layout envs that observe uint8 images of at least "
             "8x8 pixels (goal_space='image'; Atari: stable_baselines3.common.atari_wrappers.AtariWrapper); "
             "pass goal_space= a GoalSpace for other envs."
         )
     return candidates[0]
 
 
-__all__ = ["GOAL_SPACES", "SUCCESS_KEY", "GoalSpace", "ImageGoalSpace", "MiniGridEgocentricObs", "MiniGridGoalSpace", "make_goal_space", "wrap_env"]
+__all__ = ["GOAL_SPACES", "SUCCESS_KEY", "FetchFlatObs", "FetchGoalSpace", "GoalSpace", "ImageGoalSpace", "MiniGridEgocentricObs", "MiniGridGoalSpace", "make_goal_space", "wrap_env"]

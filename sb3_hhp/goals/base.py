@@ -73,6 +73,11 @@ class GoalSpace(ABC):
         """Privileged facts about the current state for scripted oracles (never shown to people)."""
         return {}
 
+    def query_info(self, state: np.ndarray, goal1_obs: np.ndarray, goal2_obs: np.ndarray) -> dict[str, Any]:
+        """Facts a scripted oracle reads off a question's state and its two sub-goals' observations, added
+        to the question's ``info`` (JSON values; default: none)."""
+        return {}
+
     def render(self, env: gym.Env) -> Optional[np.ndarray]:
         """An RGB image of the current state for people (None when the env cannot render)."""
         try:

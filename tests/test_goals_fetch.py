@@ -1,0 +1,163 @@
+"""Fetch goal space: the flat observation, cell keys, done(s, g), similarity, the facts the scripted oracle
+reads, the drawing, and HhP end to end on FetchReach with DDPG subpolicies (sb3_hhp.goals.fetch)."""
+
+import gymnasium as gym
+import gymnasium_robotics
+import minigrid  # noqa: F401  (registers the MiniGrid envs)
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3 import DDPG
+from stable_baselines3.common.evaluation import evaluate_policy
+
+from sb3_hhp import HhP
+from sb3_hhp.hierarchy.env import _is_success
+from sb3_hhp.goals import SUCCESS_KEY, FetchFlatObs, FetchGoalSpace, make_goal_space, wrap_env
+from sb3_hhp.oracles import FetchScriptedOracle, Label, Query
+
+gym.register_envs(gymnasium_robotics)
+
+REACH = "FetchReach-v4"
+
+
+def _flat(observation: np.ndarray, achieved: list, desired: list) -> np.ndarray:
+    return np.concatenate([observation, achieved, desired]).astype(np.float32)
+
+
+def test_flat_observation_is_observation_then_achieved_then_desired() -> None:
+    env = FetchFlatObs(gym.make(REACH))
+    raw, _ = env.env.reset(seed=0)
+    flat = env.observation(raw)
+    assert env.observation_space.shape == (10 + 3 + 3,)
+    assert flat.dtype == np.float32 and flat.shape == env.observation_space.shape
+    np.testing.assert_allclose(flat[:10], raw["observation"], rtol=1e-6)
+    space = FetchGoalSpace()
+    np.testing.assert_allclose(space.achieved_position(flat), raw["achieved_goal"], rtol=1e-6)
+    np.testing.assert_allclose(space.desired_position(flat), raw["desired_goal"], rtol=1e-6)
+    obs, _ = env.reset(seed=1)
+    np.testing.assert_allclose(space.desired_position(obs), env.unwrapped.goal, rtol=1e-6)
+    env.close()
+
+
+def test_wrap_env_and_auto_goal_space_pick_fetch() -> None:
+    raw = gym.make(REACH)
+    assert not FetchGoalSpace.supports(raw)  # a dict observation: wrap it first
+    with pytest.raises(ValueError, match="FetchFlatObs"):
+        make_goal_space("auto", raw)
+    wrapped = wrap_env(raw)
+    assert isinstance(wrapped, FetchFlatObs) and FetchGoalSpace.supports(wrapped)
+    assert isinstance(make_goal_space("auto", wrapped), FetchGoalSpace)
+    assert wrap_env(wrapped) is wrapped
+    with pytest.raises(ValueError, match="Fetch env"):
+        FetchFlatObs(gym.make("MiniGrid-Empty-5x5-v0"))
+    with pytest.raises(ValueError, match="cell_size must be > 0"):
+        FetchGoalSpace(cell_size=0)
+
+
+def test_key_is_the_cell_of_the_achieved_position() -> None:
+    space = FetchGoalSpace(cell_size=0.05)
+    obs = _flat(np.zeros(10), [1.34, 0.749, -0.01], [1.0, 1.0, 1.0])
+    # floor(1.34 / 0.05) = 26, floor(0.749 / 0.05) = 14, floor(-0.01 / 0.05) = -1
+    assert space.key(obs) == (26, 14, -1)
+    np.testing.assert_allclose(space.cell_center((26, 14, -1)), [1.325, 0.725, -0.025])
+    assert space.key(_flat(np.ones(10), [1.301, 0.701, -0.049], [0.0, 0.0, 0.0])) == (26, 14, -1)  # robot, target ignored
+    assert space.describe((26, 14, -1)) == "at (132.5, 72.5, -2.5) cm"
+    assert space.describe(SUCCESS_KEY) == "task solved"
+    assert FetchGoalSpace().key(obs) == (134, 74, -1)  # 1 cm cells by default
+
+
+def test_done_is_the_papers_distance_of_at_most_five_centimetres() -> None:
+    space = FetchGoalSpace()  # 1 cm cells, 0.05 m
+    goal = space.key(_flat(np.zeros(10), [1.305, 0.705, 0.505], [0, 0, 0]))
+    for offset, reached in (([0.0, 0.0, 0.0], True), ([0.05, 0.0, 0.0], True), ([0.03, 0.04, 0.0], True),
+                            ([0.06, 0.0, 0.0], False), ([0.03, 0.03, 0.03], False), ([0.0, 0.0, -0.1], False)):
+        key = space.key(_flat(np.zeros(10), np.add([1.305, 0.705, 0.505], offset), [0, 0, 0]))
+        assert space.achieved(key, goal) is reached, offset
+        assert space.choosable(key, goal) is not reached  # a sub-goal already reached is no choice
+    assert not space.achieved(SUCCESS_KEY, goal) and space.achieved(SUCCESS_KEY, SUCCESS_KEY)
+    with pytest.raises(ValueError, match="distance_threshold must be > 0"):
+        FetchGoalSpace(distance_threshold=-0.05)
+
+
+def test_similarity_halves_at_the_distance_threshold() -> None:
+    space = FetchGoalSpace(cell_size=0.01, distance_threshold=0.05)
+    others = [(0, 0, 0), (5, 0, 0), (3, 4, 0), (10, 0, 0), (0, 0, 1), SUCCESS_KEY]
+    similarity = space.similarity((0, 0, 0), np.zeros(16), others, np.zeros((len(others), 16)))
+    # 1 / (1 + (d / 0.05)^2) for d = 0, 0.05, 0.05, 0.10, 0.01 m
+    np.testing.assert_allclose(similarity, [1.0, 1 / 2, 1 / 2, 1 / 5, 1 / 1.04, 0.0])
+    np.testing.assert_allclose(space.similarity(SUCCESS_KEY, np.zeros(16), others, np.zeros((6, 16))), [0, 0, 0, 0, 0, 1])
+
+
+def test_query_info_feeds_the_scripted_oracle() -> None:
+    space = FetchGoalSpace()
+    state = _flat(np.zeros(10), [1.3, 0.7, 0.5], [1.4, 0.8, 0.5])
+    goal1 = _flat(np.zeros(10), [1.35, 0.75, 0.5], [1.1, 0.6, 0.4])  # 7 cm from the state's target
+    goal2 = _flat(np.zeros(10), [1.2, 0.7, 0.5], [1.4, 0.8, 0.5])  # 22 cm from it
+    info = space.query_info(state, goal1, goal2)
+    np.testing.assert_allclose(info["desired_goal"], [1.4, 0.8, 0.5], rtol=1e-6)
+    np.testing.assert_allclose(info["goal1_achieved"], [1.35, 0.75, 0.5], rtol=1e-6)
+    np.testing.assert_allclose(info["goal2_achieved"], [1.2, 0.7, 0.5], rtol=1e-6)
+    oracle = FetchScriptedOracle()
+    query = Query(state=state, goal1=0, goal2=1, goal1_obs=goal1, goal2_obs=goal2, info=info)
+    assert oracle.answer(query) == Label.FIRST
+    swapped = Query(state=state, goal1=1, goal2=0, goal1_obs=goal2, goal2_obs=goal1, info=space.query_info(state, goal2, goal1))
+    assert oracle.answer(swapped) == Label.SECOND
+
+
+def test_image_draws_the_achieved_position_and_the_target_from_above_and_the_side() -> None:
+    space = FetchGoalSpace()
+    image = space.image_of(_flat(np.zeros(10), [1.1, 0.55, 0.4], [1.5, 0.95, 0.8]))
+    assert image.shape == (64, 128, 3) and image.dtype == np.uint8
+    blue = (image[..., 2] > 200) & (image[..., 0] < 100)
+    red = (image[..., 0] > 200) & (image[..., 2] < 100)
+    for panel in (slice(0, 64), slice(64, 128)):
+        rows, columns = np.nonzero(blue[:, panel])
+        assert rows.size and columns.size
+        # the achieved position is at the lower left of both views (x, y and z below the view's centre)
+        assert columns.mean() < 32 and rows.mean() > 32
+        rows, columns = np.nonzero(red[:, panel])
+        assert columns.mean() > 32 and rows.mean() < 32  # the target at the upper right
+
+
+def test_hhp_trains_ddpg_subpolicies_on_fetch_reach_and_round_trips(tmp_path) -> None:
+    th.set_num_threads(1)
+    model = HhP(
+        "MlpPolicy", gym.make(REACH), oracle="scripted", query_budget=6, seed=0, learning_starts=100, n_masks=20,
+        subpolicy_kwargs=dict(learning_starts=64, batch_size=32, policy_kwargs=dict(net_arch=[32, 32])),
+    )
+    assert isinstance(model.goal_space, FetchGoalSpace)
+    model.learn(400)
+    assert model.num_timesteps >= 400 and len(model.subgoals) >= 2
+    subpolicy = model.subpolicies[0].model
+    assert isinstance(subpolicy, DDPG)
+    assert model.subpolicies[0].num_steps > 0 and subpolicy._n_updates > 0  # trained online while it acted
+    # the scripted oracle answered with the positions the goal space put into every question
+    answered = [model.store.get_query(query_id) for query_id in model.consumed_query_ids]
+    assert answered and all({"desired_goal", "goal1_achieved", "goal2_achieved"} <= set(q.info) for q in answered)
+    assert len(model.predictor) > 0
+
+    eval_env = wrap_env(gym.make(REACH))
+    mean_return, _ = evaluate_policy(model, eval_env, n_eval_episodes=2, deterministic=True)
+    assert -50.0 <= mean_return <= 0.0  # Fetch pays -1 a step until the target is reached, 50 steps an episode
+    model.save(tmp_path / "fetch")
+    loaded = HhP.load(tmp_path / "fetch", env=gym.make(REACH))
+    obs, _ = eval_env.reset(seed=7)
+    for _ in range(5):
+        action, _ = model.predict(obs, deterministic=True)
+        np.testing.assert_allclose(loaded.predict(obs, deterministic=True)[0], action)
+        assert action.shape == (4,) and np.all(np.abs(action) <= 1.0)
+        obs, *_ = eval_env.step(action)
+
+
+@pytest.mark.parametrize(
+    "info, terminated, extrinsic_return, success",
+    [
+        ({"is_success": 1.0}, False, -30.0, True),  # Fetch: solved at the time limit, never terminated
+        ({"is_success": 0.0}, True, 1.0, False),  # the env's own word wins
+        ({}, True, 0.9, True),  # MiniGrid: a positive return at a terminal state
+        ({}, False, 0.9, False),
+        ({}, True, 0.0, False),
+    ],
+)
+def test_episode_success_is_the_envs_own_where_it_reports_one(info, terminated, extrinsic_return, success) -> None:
+    assert _is_success(info, terminated, extrinsic_return) is success
