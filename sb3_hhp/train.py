@@ -8,7 +8,7 @@ TensorBoard logs and optuna tuning (``-optimize``) work for HhP unchanged:
   (and its converter), done here because ``--algo``'s choices are fixed when RL Zoo parses its arguments;
 - :class:`HhPExperimentManager`, RL Zoo's :class:`~rl_zoo3.exp_manager.ExperimentManager` with four
   changes: an env id with no entry of its own in the YAML takes its domain's entry (``minigrid`` for any
-  ``MiniGrid-*`` id); unknown keys are refused before training; ``--oracle`` and a durable preference
+  ``MiniGrid-*`` id, ``atari``, ``fetch``); unknown keys are refused before training; ``--oracle`` and a durable preference
   database in the run folder (``<log folder>/hhp/<ENV>_<run>/preferences.sqlite``) join the
   hyperparameters; the callbacks count primitive env steps (below).
 
