@@ -33,6 +33,8 @@ VIEW_CENTER = np.array([1.30, 0.75, 0.60])
 VIEW_HALF_WIDTH = 0.40
 #: pixels per side of each of the two panels of the drawing
 PANEL = 64
+#: the parts of a Fetch observation, in the order :class:`FetchFlatObs` concatenates them
+FIELDS = ("observation", "achieved_goal", "desired_goal")
 
 
 def find_fetch(env: gym.Env) -> Optional[gym.Env]:
@@ -48,20 +50,16 @@ class FetchFlatObs(gym.ObservationWrapper):
     def __init__(self, env: gym.Env) -> None:
         super().__init__(env)
         space = env.observation_space
-        if find_fetch(env) is None or not isinstance(space, spaces.Dict) or set(space.spaces) != {
-            "observation", "achieved_goal", "desired_goal"
-        }:
+        if find_fetch(env) is None or not isinstance(space, spaces.Dict) or set(space.spaces) != set(FIELDS):
             raise ValueError(
                 f"FetchFlatObs needs a gymnasium-robotics Fetch env with its dict observation, got {env} "
                 f"observing {space}"
             )
-        size = sum(int(np.prod(space[name].shape)) for name in ("observation", "achieved_goal", "desired_goal"))
+        size = sum(int(np.prod(space[name].shape)) for name in FIELDS)
         self.observation_space = spaces.Box(-np.inf, np.inf, (size,), np.float32)
 
     def observation(self, observation: dict[str, Any]) -> np.ndarray:
-        return np.concatenate(
-            [np.ravel(observation[name]) for name in ("observation", "achieved_goal", "desired_goal")]
-        ).astype(np.float32)
+        return np.concatenate([np.ravel(observation[name]) for name in FIELDS]).astype(np.float32)
 
 
 class FetchGoalSpace(GoalSpace):
@@ -114,7 +112,7 @@ class FetchGoalSpace(GoalSpace):
         :data:`SUCCESS_KEY`, 0 between two)."""
         if key == SUCCESS_KEY or other == SUCCESS_KEY:
             return 0.0 if key == other else math.inf
-        return float(math.dist(self.cell_center(key), self.cell_center(other)))
+        return self.cell_size * math.dist(key, other)  # centres are (key + 0.5) * cell_size: no arrays per step
 
     def achieved(self, key: Hashable, goal_key: Hashable) -> bool:
         """``done(s, g)``: the achieved position is within ``distance_threshold`` of the sub-goal's."""
