@@ -128,9 +128,9 @@ def test_hhp_trains_ddpg_subpolicies_on_fetch_reach_and_round_trips(tmp_path) ->
     assert isinstance(model.goal_space, FetchGoalSpace)
     model.learn(400)
     assert model.num_timesteps >= 400 and len(model.subgoals) >= 2
-    subpolicy = model.subpolicies[0].model
+    subpolicy = model.subpolicies.subpolicies[0].model
     assert isinstance(subpolicy, DDPG)
-    assert model.subpolicies[0].num_steps > 0 and subpolicy._n_updates > 0  # trained online while it acted
+    assert model.subpolicies.subpolicies[0].num_steps > 0 and subpolicy._n_updates > 0  # trained online while it acted
     # the scripted oracle answered with the positions the goal space put into every question
     answered = [model.store.get_query(query_id) for query_id in model.consumed_query_ids]
     assert answered and all({"desired_goal", "goal1_achieved", "goal2_achieved"} <= set(q.info) for q in answered)

@@ -121,7 +121,7 @@ def test_hhp_trains_on_a_fixed_layout_image_env_with_cnn_policy(tmp_path) -> Non
     assert model.num_timesteps >= 300 and len(model.subgoals) >= 3
     assert model.query_selector.used > 0 and len(model.predictor) > 0  # the predictor read frames (queries, bonus)
     assert np.asarray(model.goal_obs).shape[1:] == (40, 40, 1)  # sub-goals kept as the env's frames
-    assert sum(sub.num_steps for sub in model.subpolicies.policies) > 0
+    assert model.subpolicies.own_steps.sum() > 0
     mean_return, _ = evaluate_policy(model, PixelRoom(), n_eval_episodes=2, warn=False)
     assert 0.0 <= mean_return <= 1.0
     model.save(tmp_path / "image_hhp")

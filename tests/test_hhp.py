@@ -93,7 +93,7 @@ def test_predict_single_and_vectorised(trained: HhP) -> None:
     assert goals.shape == (1,) and steps.shape == (1,)
     assert 0 <= goals[0] < n_goals and steps[0] == 1
     # the action is the chosen sub-goal's subpolicy acting greedily
-    assert int(action) == int(trained.subpolicies[int(goals[0])].act(obs[0], deterministic=True))
+    assert int(action) == int(trained.subpolicies.act(goals[:1], obs[0][None], deterministic=True)[0])
 
     actions, (goals, steps) = trained.predict(obs, deterministic=True)
     assert actions.shape == (len(obs),)
@@ -179,7 +179,7 @@ def test_total_timesteps_counts_primitive_steps(trained: HhP) -> None:
     assert trained.num_timesteps >= 2_000
     assert trained.num_timesteps == trained.hierarchy.num_steps
     # every primitive step was a subpolicy step or a step of the first, random episode
-    subpolicy_steps = sum(sub.num_steps for sub in trained.subpolicies.policies)
+    subpolicy_steps = int(trained.subpolicies.own_steps.sum())
     assert 0 < subpolicy_steps < trained.num_timesteps
     assert sum(trained.hierarchy.visits.values()) == trained.num_timesteps
     # far fewer meta-steps (sub-goal choices) than primitive steps
@@ -434,62 +434,64 @@ def test_without_curiosity_no_intrinsic_reward() -> None:
     assert model.num_timesteps >= 600
 
 
+def _last_rows(model: HhP, steps: int) -> np.ndarray:
+    """Rows of the shared replay holding the last ``steps`` primitive steps (one env)."""
+    replay = model.subpolicies.replay
+    return (replay.pos - steps + np.arange(steps)) % replay.capacity
+
+
 def test_shared_experience_is_relabelled_with_each_subgoals_eq5_reward() -> None:
-    """Every primitive step lands in every other subpolicy's buffer with that sub-goal's own eq. 5
-    reward (no curiosity here, so eq. 6 adds nothing): +1 where its key is reached, -1 where the
-    episode terminated without reaching it, 0 otherwise."""
+    """Every primitive step is stored once, and relabelled for every sub-goal with its own eq. 5 reward when
+    drawn (no curiosity here, so eq. 6 adds nothing): +1 where its key is reached, -1 where the episode
+    terminated without reaching it, 0 otherwise."""
     model = make_model(EMPTY, use_curiosity=False)
     model.learn(600)
-    hierarchy, goal_space = model.hierarchy, model.goal_space
+    hierarchy, goal_space, replay = model.hierarchy, model.goal_space, model.subpolicies.replay
     assert hierarchy.n_subgoals >= 2
-    obs, _ = hierarchy.reset(seed=3)
-    sizes = [sub.model.replay_buffer.size() for sub in model.subpolicies.policies]
-    next_obs, _, terminated, _, info = hierarchy.step(0)
+    hierarchy.reset(seed=3)
+    size = replay.size()
+    _, _, terminated, _, info = hierarchy.step(0)
     steps = info["primitive_steps"]
-    other = model.subpolicies[1].model.replay_buffer
-    assert other.size() == sizes[1] + steps
+    assert replay.size() == min(replay.capacity, size + steps)
+    rows = _last_rows(model, steps)
     keys = hierarchy.trace.low_keys
+    rewards, terminal, _ = replay.rewards(rows, np.zeros_like(rows), np.ones_like(rows))  # for sub-goal 1
     for offset in range(steps):
-        index = (other.pos - steps + offset) % other.buffer_size
         reached = goal_space.achieved(keys[offset], hierarchy.subgoals[1].key)
         last = offset == steps - 1
-        expected = 1.0 if reached else (-1.0 if (terminated and last) else 0.0)
-        assert other.rewards[index, 0] == pytest.approx(expected)
-        assert bool(other.dones[index, 0]) == (reached or (terminated and last))
-        assert other.off_policy[index, 0]  # another subpolicy acted: one-step only in this buffer
-    own = model.subpolicies[0].model.replay_buffer
-    assert not own.off_policy[(own.pos - steps + np.arange(steps)) % own.buffer_size, 0].any()
+        assert rewards[offset] == pytest.approx(1.0 if reached else (-1.0 if (terminated and last) else 0.0))
+        assert bool(terminal[offset]) == (reached or (terminated and last))
+    assert (replay.acting[rows, 0] == 0).all()  # sub-goal 0 acted: one-step transitions for sub-goal 1
 
 
 @pytest.mark.parametrize("train_shared", [False, True])
 def test_train_shared_gives_every_subpolicy_its_gradient_steps(train_shared: bool) -> None:
-    """Without ``train_shared`` only the acting subpolicy learns from a step; with it, every subpolicy counts
-    the shared step as a learning tick and updates at its own train_freq."""
+    """Without ``train_shared`` only the acting sub-goal counts a step as a learning tick; with it, every
+    sub-goal does, and all due sub-goals update together at the train frequency."""
     kwargs = {**TINY.get("subpolicy_kwargs", {}), "train_freq": 2, "learning_starts": 1, "batch_size": 4}
     model = make_model(EMPTY, use_curiosity=False, subpolicy_kwargs=kwargs, train_shared=train_shared)
     model.learn(600)
-    hierarchy = model.hierarchy
+    hierarchy, learners = model.hierarchy, model.subpolicies
     assert hierarchy.n_subgoals >= 2
     hierarchy.reset(seed=3)
-    before = [(sub.num_ticks, sub.model._n_updates) for sub in model.subpolicies.policies]
+    ticks, updates = learners.ticks.copy(), learners.n_updates.copy()
     _, _, _, _, info = hierarchy.step(0)
     steps = info["primitive_steps"]
-    for goal_id, sub in enumerate(model.subpolicies.policies):
-        ticks, updates = before[goal_id]
+    for goal_id in range(len(learners)):
         if goal_id == 0 or train_shared:
-            assert sub.num_ticks == ticks + steps
-            assert sub.model._n_updates == updates + (ticks + steps) // 2 - ticks // 2
+            assert learners.ticks[goal_id] == ticks[goal_id] + steps
+            assert learners.n_updates[goal_id] == updates[goal_id] + (ticks[goal_id] + steps) // 2 - ticks[goal_id] // 2
         else:
-            assert (sub.num_ticks, sub.model._n_updates) == (ticks, updates)
+            assert (learners.ticks[goal_id], learners.n_updates[goal_id]) == (ticks[goal_id], updates[goal_id])
 
 
 def test_relabelled_step_at_the_time_limit_is_a_timeout() -> None:
-    """Where the episode is cut by its time limit, the other subpolicies get the step as a timeout: their
-    n-step returns stop there instead of running on into the next episode, and the step is bootstrapped."""
+    """Where the episode is cut by its time limit, every sub-goal reads the step as a timeout: its n-step
+    returns stop there instead of running on into the next episode, and the step is bootstrapped."""
     model = make_model(EMPTY, use_curiosity=False, subpolicy_kwargs={**TINY.get("subpolicy_kwargs", {}), "n_steps": 8})
     model.learn(600)
-    hierarchy = model.hierarchy
-    assert hierarchy.n_subgoals >= 2 and model.subpolicies[1].model.replay_buffer.n_steps == 8
+    hierarchy, replay = model.hierarchy, model.subpolicies.replay
+    assert hierarchy.n_subgoals >= 2 and replay.n_steps == 8
     hierarchy.env.unwrapped.max_steps = 2
     for seed in range(20):
         hierarchy.reset(seed=seed)
@@ -498,32 +500,32 @@ def test_relabelled_step_at_the_time_limit_is_a_timeout() -> None:
             break
     else:
         pytest.fail("no episode was cut by the time limit")
-    other = model.subpolicies[1].model.replay_buffer
-    last = (other.pos - 1) % other.buffer_size
-    assert bool(other.timeouts[last, 0]) and bool(other.dones[last, 0])
-    assert other.rewards[last, 0] == pytest.approx(0.0)
-    previous = (last - 1) % other.buffer_size
-    assert not other.timeouts[previous, 0]
+    rows = _last_rows(model, 2)
+    rewards, terminal, cut = replay.rewards(rows, np.zeros(2, dtype=int), np.ones(2, dtype=int))
+    assert cut[1] and not terminal[1] and rewards[1] == pytest.approx(0.0)
+    assert not cut[0]
 
 
 def test_active_subpolicy_stores_a_give_up_as_a_timeout_and_a_failed_episode_end_as_eq5_minus_one() -> None:
     """Eq. 5's -1 is for the env's own terminal function: a try cut by ``max_subgoal_steps`` (or by the
-    env's time limit) is a timeout in the acting subpolicy's buffer (bootstrapped, pseudo-reward 0), while
-    an episode that terminates without reaching the sub-goal is a terminal -1."""
+    env's time limit) is a timeout for the acting sub-goal (bootstrapped, pseudo-reward 0), while an
+    episode that terminates without reaching the sub-goal is a terminal -1."""
     carrying_a_key = observations(EMPTY)[0].copy()
     center = carrying_a_key.shape[0] // 2
     carrying_a_key[center, center] = (OBJECT_TO_IDX["key"], 0, 0)  # "carrying a key": never reached in an empty room
     model = make_model(EMPTY, use_curiosity=False, discovery="none", max_subgoal_steps=3, subgoals=[carrying_a_key])
-    hierarchy = model.hierarchy
-    own = model.subpolicies[0].model.replay_buffer
+    hierarchy, replay = model.hierarchy, model.subpolicies.replay
     hierarchy.reset(seed=0)
-    before = own.size()
+    before = replay.size()
     _, _, terminated, truncated, info = hierarchy.step(0)
     assert not (terminated or truncated or info["subgoal_reached"]) and info["primitive_steps"] == 3
-    last = (own.pos - 1) % own.buffer_size
-    assert own.size() == before + 3
-    assert bool(own.timeouts[last, 0]) and own.rewards[last, 0] == pytest.approx(0.0)
-    assert not own.timeouts[(last - 1) % own.buffer_size, 0] and not own.dones[(last - 1) % own.buffer_size, 0]
+    assert replay.size() == before + 3
+    rows = _last_rows(model, 3)
+    rewards, terminal, cut = replay.rewards(rows, np.zeros(3, dtype=int), np.zeros(3, dtype=int))
+    assert cut[-1] and not terminal[-1] and rewards[-1] == pytest.approx(0.0)
+    assert not cut[-2] and not terminal[-2]
+    # the give-up is the acting sub-goal's own time limit: not a cut for a sub-goal that did not act
+    assert not replay.rewards(rows[-1:], np.zeros(1, dtype=int), np.ones(1, dtype=int))[2][0]
     # an episode that ends on the goal square without reaching the sub-goal: -1, terminal, not a timeout
     base = hierarchy.env.unwrapped
     for _ in range(20):
@@ -531,13 +533,14 @@ def test_active_subpolicy_stores_a_give_up_as_a_timeout_and_a_failed_episode_end
         base.agent_pos = (base.width - 3, base.height - 2)  # left of the goal square
         base.agent_dir = 0
         hierarchy._obs = hierarchy.env.observation(None)
-        model.subpolicies[0].act = lambda obs, deterministic=False: np.asarray(2)  # forward
+        model.subpolicies.act = lambda goals, obs, deterministic=False: np.asarray([2])  # forward
         _, reward, terminated, _, info = hierarchy.step(0)
         if terminated:
             break
     assert terminated and reward > 0 and not info["subgoal_reached"]
-    last = (own.pos - 1) % own.buffer_size
-    assert own.rewards[last, 0] == pytest.approx(-1.0) and own.dones[last, 0] and not own.timeouts[last, 0]
+    rows = _last_rows(model, 1)
+    rewards, terminal, cut = replay.rewards(rows, np.zeros(1, dtype=int), np.zeros(1, dtype=int))
+    assert rewards[0] == pytest.approx(-1.0) and terminal[0] and not cut[0]
 
 
 def test_with_curiosity_intrinsic_rewards_are_not_all_zero() -> None:

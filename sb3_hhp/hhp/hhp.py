@@ -31,7 +31,8 @@ from sb3_hhp.dqn.dqn import DoubleDQN
 from sb3_hhp.goals import GoalSpace, make_goal_space, wrap_env
 from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, MlpPolicy, MultiInputPolicy
 from sb3_hhp.hierarchy.env import HierarchicalEnv
-from sb3_hhp.hierarchy.subpolicies import SubpolicySet
+from sb3_hhp.hierarchy.learners import StackedDQN
+from sb3_hhp.hierarchy.subpolicies import PerGoalLearners, SubpolicySet
 from sb3_hhp.oracles.base import Oracle
 from sb3_hhp.oracles.registry import make_oracle
 from sb3_hhp.preferences.predictor import PreferencePredictor
@@ -330,10 +331,20 @@ class HhP(DoubleDQN):
         self.predictor = PreferencePredictor(predictor_space, **predictor_kwargs)
         self.query_selector = QuerySelector(self.query_budget, threshold=self.t_qry, mode=self.query_mode)
         self.return_normalizer = PreferenceReturnNormalizer(gamma=0.99, rollout_length=64)
-        self.subpolicies = SubpolicySet(
-            obs_space, self.primitive_action_space, policy=self.subpolicy_policy, subpolicy_kwargs=self.subpolicy_kwargs,
-            exploration_steps=self.subpolicy_exploration_steps, device=device, seed=self.seed,
-        )
+        alpha = self.alpha if self.use_curiosity else 0.0
+        if isinstance(self.primitive_action_space, spaces.Discrete):
+            self.subpolicies = StackedDQN(
+                obs_space, self.primitive_action_space, self.goal_space.achieved, policy=self.subpolicy_policy,
+                subpolicy_kwargs=self.subpolicy_kwargs, alpha=alpha, exploration_steps=self.subpolicy_exploration_steps,
+                share_experience=self.share_experience, train_shared=self.train_shared, device=device, seed=self.seed,
+            )
+        else:
+            self.subpolicies = PerGoalLearners(
+                SubpolicySet(obs_space, self.primitive_action_space, policy=self.subpolicy_policy,
+                             subpolicy_kwargs=self.subpolicy_kwargs, exploration_steps=self.subpolicy_exploration_steps,
+                             device=device, seed=self.seed),
+                self.goal_space.achieved, alpha=alpha, share_experience=self.share_experience, train_shared=self.train_shared,
+            )
         self.discovery = SubgoalDiscovery(
             self.goal_space, strategy="random" if self.discovery_strategy == "random" else "csd",
             percentile=self.csd_percentile, min_visits=self.csd_min_visits,
@@ -357,8 +368,6 @@ class HhP(DoubleDQN):
         hierarchy.subpolicies = self.subpolicies
         hierarchy.rnd = self.rnd
         hierarchy.record_images = bool(self.record_images)
-        hierarchy.share_experience = self.share_experience
-        hierarchy.train_shared = self.train_shared
         if hierarchy.n_subgoals == 0 and not hierarchy.subgoals:
             for goal_obs in self.initial_subgoals:
                 self.add_subgoal(self.goal_space.key(goal_obs), goal_obs, None, source="user")
@@ -585,7 +594,7 @@ class HhP(DoubleDQN):
                 chosen[gave_up] = np.where(np.isfinite(q_values).any(axis=1), q_values.argmax(axis=1), allowed.argmax(axis=1))
             goals[renew] = chosen
             steps[renew] = 0
-        actions = np.stack([self.subpolicies[int(goals[i])].act(batch[i], deterministic=deterministic) for i in range(n_envs)])
+        actions = self.subpolicies.act(goals, batch, deterministic=deterministic)
         steps += 1
         return (actions if vectorized else actions[0]), (goals, steps)
 
@@ -653,9 +662,10 @@ class HhP(DoubleDQN):
         if self.hierarchy is not None and self.hierarchy.last_trace.intrinsic:
             self.logger.record("hhp/mean_intrinsic_reward", float(np.mean(self.hierarchy.last_trace.intrinsic)))
         self.logger.record("hhp/sigma_preference_return", self.return_normalizer.sigma)
-        for goal_id, sub in enumerate(self.subpolicies.policies):
-            if sub.success_rate is not None:
-                self.logger.record(f"subgoals/success_rate_{goal_id}", sub.success_rate)
+        for goal_id in range(len(self.subpolicies)):
+            rate = self.subpolicies.success_rate(goal_id)
+            if rate is not None:
+                self.logger.record(f"subgoals/success_rate_{goal_id}", rate)
         super().dump_logs()
 
     def subgoal_records(self) -> list[dict[str, Any]]:
@@ -669,13 +679,12 @@ class HhP(DoubleDQN):
             mean_score = None
             if states is not None and len(self.predictor) > 0:
                 mean_score = float(np.mean(self.predictor.score(states, np.repeat(goal_obs[goal_id : goal_id + 1], len(states), 0))))
-            sub = self.subpolicies[goal_id] if goal_id < len(self.subpolicies) else None
             records.append(
                 dict(
                     id=goal_id,
                     image=goal.image if goal.image is not None else np.zeros((8, 8, 3), np.uint8),
                     found_at=int(goal.found_at),
-                    success_rate=None if sub is None else sub.success_rate,
+                    success_rate=self.subpolicies.success_rate(goal_id) if goal_id < len(self.subpolicies) else None,
                     chosen_recently=int(counts.get(goal_id, 0)),
                     mean_score=mean_score,
                     name=self.goal_space.describe(goal.key),

@@ -26,8 +26,6 @@ from gymnasium import spaces
 
 from sb3_hhp.curiosity.rnd import RND
 from sb3_hhp.goals.base import GoalSpace
-from sb3_hhp.hierarchy.subpolicies import SubpolicySet
-from sb3_hhp.preferences.rewards import pseudo_reward, subpolicy_reward
 
 
 @dataclass
@@ -62,18 +60,13 @@ class HierarchicalEnv(gym.Env):
 
     :param env: the primitive env (observations must suit ``goal_space``)
     :param goal_space: the domain's goal space
-    :param subpolicies: the subpolicy set (one per sub-goal)
+    :param subpolicies: the sub-goal learners (:class:`~sb3_hhp.hierarchy.learners.StackedDQN` or
+        :class:`~sb3_hhp.hierarchy.subpolicies.PerGoalLearners`)
     :param rnd: the global curiosity model (None: no curiosity, the "Pref" ablation)
     :param alpha: weight of the intrinsic reward in eq. 6
     :param max_subgoal_steps: primitive steps after which a sub-goal gives up
     :param capacity: initial size of the action space (grows by doubling)
     :param record_images: render s_t at each choice (needed by people and the gallery)
-    :param share_experience: also store every transition in the other subpolicies' buffers with their
-        own rewards (intra-option learning); they are one-step transitions in those buffers, since n-step
-        returns along another subpolicy's actions are biased
-    :param train_shared: with ``share_experience``, every subpolicy also counts a shared step as a learning
-        tick (gradient steps at its own ``train_freq``), not only the active one; costs a gradient step per
-        sub-goal every ``train_freq`` primitive steps
     """
 
     metadata = {"render_modes": []}
@@ -82,14 +75,12 @@ class HierarchicalEnv(gym.Env):
         self,
         env: gym.Env,
         goal_space: GoalSpace,
-        subpolicies: SubpolicySet,
+        subpolicies: Any,
         rnd: Optional[RND],
         alpha: float = 0.5,
         max_subgoal_steps: int = 100,
         capacity: int = 16,
         record_images: bool = False,
-        share_experience: bool = True,
-        train_shared: bool = False,
     ) -> None:
         if max_subgoal_steps < 1:
             raise ValueError(f"max_subgoal_steps must be >= 1, got {max_subgoal_steps}")
@@ -104,8 +95,6 @@ class HierarchicalEnv(gym.Env):
         self.alpha = alpha
         self.max_subgoal_steps = max_subgoal_steps
         self.record_images = record_images
-        self.share_experience = share_experience
-        self.train_shared = train_shared
         self.observation_space = env.observation_space
         self.action_space = spaces.Discrete(capacity)
         self.subgoals: list[Subgoal] = []
@@ -123,7 +112,7 @@ class HierarchicalEnv(gym.Env):
     def add_subgoal(self, key: Hashable, obs: np.ndarray, image: Optional[np.ndarray], source: str = "csd") -> int:
         """Add a sub-goal to G with a freshly initialised subpolicy; grow the action space if needed."""
         self.subgoals.append(Subgoal(key, np.array(obs, copy=True), image, self.num_steps, source))
-        self.subpolicies.add()
+        self.subpolicies.add(key)
         if self.n_subgoals > self.action_space.n:
             self.action_space = spaces.Discrete(2 * int(self.action_space.n))
         return self.n_subgoals - 1
@@ -145,7 +134,7 @@ class HierarchicalEnv(gym.Env):
         if not 0 <= goal_id < self.n_subgoals:
             raise ValueError(f"Sub-goal {goal_id} does not exist: there are {self.n_subgoals} sub-goals")
         goal = self.subgoals[goal_id]
-        subpolicy = self.subpolicies[goal_id]
+        learners = self.subpolicies
         trace = self.trace
         trace.high_obs.append(self._obs)
         trace.high_goals.append(goal_id)
@@ -156,30 +145,28 @@ class HierarchicalEnv(gym.Env):
         obs, extrinsic_return, steps = self._obs, 0.0, 0
         terminated = truncated = achieved = False
         info: dict = {}
+        acting = np.array([goal_id])
         while True:  # lines 14-22
-            action_t = subpolicy.act(obs)  # line 15
+            action_t = learners.act(acting, obs[None])[0]  # line 15
             next_obs, reward, terminated, truncated, info = self.env.step(action_t)  # line 16
             steps += 1
             extrinsic_return += float(reward)
             key = self.goal_space.terminal_key(next_obs, float(reward), terminated)
             achieved = self.goal_space.achieved(key, goal.key)
             give_up = steps >= self.max_subgoal_steps
-            ended = achieved or terminated  # eq. 5's terminal(s, g): the env's own terminal function, or g reached
-            cut = (truncated or give_up) and not ended  # a time limit, the env's or the sub-goal's: not a failure state
-            terminal = ended or cut
+            terminal = achieved or terminated or truncated or give_up  # terminal(s, g), line 22
             intrinsic = float(self.rnd.intrinsic_reward(next_obs[None])[0]) if self.rnd is not None else 0.0  # eq. 7
-            if self.share_experience:
-                self._relabel(goal_id, obs, next_obs, action_t, key, intrinsic, terminated, truncated)
-            r_t = subpolicy_reward(pseudo_reward(achieved, ended), intrinsic, self.alpha)  # eq. 5, 6 (lines 17-18)
-            subpolicy.observe(obs, next_obs, action_t, r_t, ended, timeout=cut)  # lines 19-20
+            # lines 17-20: stored once; each sub-goal's eq. 5 / 6 reward is computed when its batch is drawn
+            learners.observe(obs[None], np.asarray([action_t]), next_obs[None], [key], np.array([terminated]),
+                             np.array([truncated]), np.array([give_up]), acting, np.array([intrinsic], dtype=np.float32))
             self.visits[key] += 1
             trace.low_obs.append(next_obs)
             trace.low_keys.append(key)
             trace.intrinsic.append(intrinsic)
             obs = next_obs  # line 21
-            if terminal:  # line 22
+            if terminal:
                 break
-        subpolicy.record_outcome(achieved)
+        learners.record_outcome(goal_id, achieved)
         self.num_steps += steps
         if self.rnd is not None:
             self.rnd.on_steps(steps)
@@ -190,23 +177,6 @@ class HierarchicalEnv(gym.Env):
         if terminated or truncated:
             info["is_success"] = _is_success(info, terminated, extrinsic_return)
         return obs, extrinsic_return, terminated, truncated, info
-
-    def _relabel(self, active: int, obs: np.ndarray, next_obs: np.ndarray, action: Any, key: Hashable,
-                 intrinsic: float, terminated: bool, truncated: bool = False) -> None:
-        """Intra-option learning: the transition is experience for every other sub-goal too, with that
-        sub-goal's own pseudo-reward (eq. 5) and the same curiosity bonus (eq. 6); only the active
-        subpolicy takes a gradient step, unless ``train_shared``. The rewards of all sub-goals come from
-        one vectorised call. An episode cut by its time limit is stored as a timeout: bootstrapped, but no
-        n-step return runs on into the next episode."""
-        done = np.array([self.goal_space.achieved(key, goal.key) for goal in self.subgoals])
-        terminal = done | terminated
-        rewards = subpolicy_reward(pseudo_reward(done, terminal), intrinsic, self.alpha)  # eq. 5, 6 for every g
-        for goal_id, other in enumerate(self.subpolicies.policies):
-            if goal_id != active:
-                other.store(obs, next_obs, action, float(rewards[goal_id]), bool(terminal[goal_id]), timeout=truncated,
-                            off_policy=True)
-                if self.train_shared:
-                    other.learn_step()
 
     def _explore_randomly(self) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Before the first sub-goal exists: one random-action episode whose states seed G (Algorithm 1 line 5)."""

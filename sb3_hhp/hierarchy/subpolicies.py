@@ -1,9 +1,10 @@
-"""The subpolicy set: one SB3 off-policy learner per sub-goal, trained online while it acts.
+"""One SB3 model per sub-goal, trained online while it acts: the learners of continuous actions.
 
-Each sub-goal ``g`` owns a subpolicy ``pi_g``: a :class:`~sb3_hhp.dqn.DoubleDQN` (Double DQN with
-prioritized replay) for discrete actions or an SB3 ``DDPG`` for continuous ones. It is driven by
-:class:`~sb3_hhp.hierarchy.env.HierarchicalEnv`, one primitive step at a time (Algorithm 1, lines
-15-20): act, store the transition with the reward of eq. 6, one gradient step.
+Discrete actions use :class:`~sb3_hhp.hierarchy.learners.StackedDQN` (every sub-goal's learner stacked over
+one shared replay). Continuous actions (Fetch) still give each sub-goal ``g`` its own SB3 ``DDPG`` with its
+own buffer: :class:`PerGoalLearners` drives them with the same interface, one primitive step at a time
+(Algorithm 1, lines 15-20): act, store the transition with the reward of eq. 6, one gradient step. Its cost
+grows with the number of sub-goals.
 """
 
 from typing import Any, Optional
@@ -256,3 +257,72 @@ def _optimizers(model: OffPolicyAlgorithm) -> list[th.optim.Optimizer]:
     if hasattr(policy, "actor"):
         return [policy.actor.optimizer, policy.critic.optimizer]
     return [policy.optimizer]
+
+
+class PerGoalLearners:
+    """:class:`SubpolicySet` behind the interface of :class:`~sb3_hhp.hierarchy.learners.StackedDQN` (one env).
+
+    :param subpolicies: the subpolicy set
+    :param achieved: ``done(s, g)`` from two sub-goal keys
+    :param alpha: weight of the intrinsic reward in eq. 6
+    :param share_experience: also store every transition in the other sub-goals' buffers with their own rewards
+    :param train_shared: with ``share_experience``, every subpolicy counts every primitive step as a learning tick
+    """
+
+    def __init__(self, subpolicies: SubpolicySet, achieved: Any, alpha: float = 0.5, share_experience: bool = True,
+                 train_shared: bool = False) -> None:
+        self.subpolicies = subpolicies
+        self.achieved = achieved
+        self.alpha = alpha
+        self.share_experience = share_experience
+        self.train_shared = train_shared
+        self.goal_keys: list[Any] = []
+
+    def __len__(self) -> int:
+        return len(self.subpolicies)
+
+    def add(self, goal_key: Any) -> int:
+        self.goal_keys.append(goal_key)
+        self.subpolicies.add()
+        return len(self) - 1
+
+    def act(self, goals: np.ndarray, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        return np.stack([self.subpolicies[int(g)].act(o, deterministic=deterministic) for g, o in zip(goals, obs)])
+
+    def observe(self, obs: np.ndarray, actions: np.ndarray, next_obs: np.ndarray, keys: list, terminated: np.ndarray,
+                truncated: np.ndarray, gave_up: np.ndarray, acting: np.ndarray, intrinsic: np.ndarray) -> None:
+        """Each env's step: the acting subpolicy stores it with its eq. 5 / 6 reward and learns; with
+        ``share_experience`` every other one stores it relabelled with its own reward (one-step)."""
+        from sb3_hhp.preferences.rewards import pseudo_reward, subpolicy_reward
+
+        for i, key in enumerate(keys):
+            done = np.array([self.achieved(key, goal_key) for goal_key in self.goal_keys], dtype=bool)
+            terminal = done | bool(terminated[i])
+            rewards = subpolicy_reward(pseudo_reward(done, terminal), float(intrinsic[i]), self.alpha)  # eq. 5, 6
+            rewards = np.atleast_1d(rewards)
+            active = int(acting[i])
+            for goal, sub in enumerate(self.subpolicies.policies):
+                if goal == active:
+                    cut = (bool(truncated[i]) or bool(gave_up[i])) and not terminal[goal]
+                    sub.observe(obs[i], next_obs[i], actions[i], float(rewards[goal]), bool(terminal[goal]), timeout=cut)
+                elif self.share_experience:
+                    sub.store(obs[i], next_obs[i], actions[i], float(rewards[goal]), bool(terminal[goal]),
+                              timeout=bool(truncated[i]), off_policy=True)
+                    if self.train_shared:
+                        sub.learn_step()
+
+    def record_outcome(self, goal: int, success: bool) -> None:
+        self.subpolicies[goal].record_outcome(success)
+
+    def success_rate(self, goal: int) -> Optional[float]:
+        return self.subpolicies[goal].success_rate
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"format": "sb3_hhp.PerGoalLearners", "goal_keys": list(self.goal_keys), "subpolicies": self.subpolicies.state_dict()}
+
+    def load_state_dict(self, state: Any) -> None:
+        if isinstance(state, list):  # saved before the learners had an interface of their own
+            raise ValueError("These sub-goal learners were saved by an older sb3_hhp, which this version cannot load: "
+                             "train the model again")
+        self.goal_keys = list(state["goal_keys"])
+        self.subpolicies.load_state_dict(state["subpolicies"])

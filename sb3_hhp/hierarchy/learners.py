@@ -1,0 +1,393 @@
+"""The sub-goal learners: one Q-function per sub-goal, all of them stacked and updated in one call.
+
+Each sub-goal ``g`` has a Double DQN learner (section 5.1: "DDQN with prioritized experience replay"): an
+SB3 ``QNetwork`` of its own, with its own target network, Adam moments, epsilon and step counters. Their
+parameters live stacked along a leading sub-goal axis, and one call of :meth:`StackedDQN.train` updates every
+due sub-goal together (``torch.func.vmap`` over ``functional_call``, as ensembles are trained), on batches that
+one :class:`~sb3_hhp.hierarchy.replay.SharedReplay` draws and relabels for each of them. So neither the memory
+nor the Python overhead of a primitive step grows with the number of sub-goals. :meth:`StackedDQN.policy`
+gives any sub-goal's learner back as an SB3 ``DQNPolicy``.
+"""
+
+from collections import deque
+from collections.abc import Callable, Hashable
+from typing import Any, Optional
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first, preprocess_obs
+from stable_baselines3.common.torch_layers import FlattenExtractor
+from stable_baselines3.dqn.policies import CnnPolicy, DQNPolicy, MlpPolicy
+from torch.func import functional_call, vmap
+from torch.nn import functional as F
+
+from sb3_hhp.hierarchy.replay import SharedReplay
+
+#: subpolicy keyword arguments the stacked learner reads (SB3 DQN's names), and those it accepts and ignores
+_USED = {
+    "learning_rate", "buffer_size", "learning_starts", "batch_size", "gamma", "train_freq", "gradient_steps", "policy_kwargs",
+    "target_update_interval", "exploration_initial_eps", "exploration_final_eps", "n_steps", "replay_buffer_kwargs",
+    "max_grad_norm", "double_q", "prioritized_replay_alpha", "prioritized_replay_beta", "prioritized_replay_eps",
+}
+_IGNORED = {"exploration_fraction", "optimize_memory_usage", "tau", "prioritized_replay"}
+
+
+def default_subpolicy_kwargs() -> dict[str, Any]:
+    """The paper's defaults (section 5.1): Adam lr 1e-3, batch 128, 256x256 units, replay of 50K; a target
+    network every 250 of a sub-goal's learning ticks (2,000 in the paper: a sub-goal lives a few thousand steps)."""
+    return dict(
+        learning_rate=1e-3, buffer_size=50_000, learning_starts=500, batch_size=128, gamma=0.99, train_freq=1,
+        gradient_steps=1, policy_kwargs=dict(net_arch=[256, 256]), target_update_interval=250,
+        exploration_initial_eps=1.0, exploration_final_eps=0.05, n_steps=1, max_grad_norm=10.0, double_q=True,
+        prioritized_replay_alpha=0.6, prioritized_replay_beta=0.4, prioritized_replay_eps=1e-6,
+    )
+
+
+def _mlp_layers(q_net: th.nn.Module) -> Optional[list[tuple[str, Any]]]:
+    """The layers of an SB3 ``QNetwork`` that is a flattened input through Linear layers and parameter-free
+    activations, as ``("linear", parameter prefix)`` / ``("activation", module)``; None for any other network."""
+    if not isinstance(q_net.features_extractor, FlattenExtractor):
+        return None
+    layers: list[tuple[str, Any]] = []
+    for name, module in q_net.q_net.named_children():
+        if isinstance(module, th.nn.Linear) and module.bias is not None:
+            layers.append(("linear", f"q_net.{name}"))
+        elif not any(True for _ in module.parameters()):
+            layers.append(("activation", module))
+        else:
+            return None
+    return layers
+
+
+class StackedDQN:
+    """Every sub-goal's Double DQN learner, stacked, over one shared replay of primitive transitions.
+
+    :param observation_space: the primitive observation space (Box)
+    :param action_space: the primitive action space (Discrete)
+    :param achieved: ``done(s, g)`` from two sub-goal keys
+    :param policy: "MlpPolicy" or "CnnPolicy" (SB3's DQN policies; the Q-network of one sub-goal)
+    :param subpolicy_kwargs: SB3 DQN's keyword arguments for every sub-goal's learner (over the paper's defaults);
+        ``buffer_size`` is the shared replay's size in primitive transitions, ``train_freq`` and
+        ``target_update_interval`` count a sub-goal's learning ticks (its own steps, or every primitive step with
+        ``train_shared``), ``replay_buffer_kwargs=dict(off_policy_lower_bound=True)`` adds the lower bound
+    :param alpha: weight of the intrinsic reward in eq. 6
+    :param exploration_steps: own steps over which a sub-goal's epsilon decays to its final value
+    :param share_experience: every sub-goal learns from every transition (relabelled); False: only from its own
+    :param train_shared: every sub-goal takes a learning tick on every primitive step, not only while it acts
+    :param n_envs: number of env streams stepped together
+    :param device: torch device
+    :param seed: seed of the initialisations (sub-goal ``g`` gets ``seed + g``), exploration and draws
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Box,
+        action_space: spaces.Discrete,
+        achieved: Callable[[Hashable, Hashable], bool],
+        policy: str = "MlpPolicy",
+        subpolicy_kwargs: Optional[dict[str, Any]] = None,
+        alpha: float = 0.5,
+        exploration_steps: int = 5_000,
+        share_experience: bool = True,
+        train_shared: bool = False,
+        n_envs: int = 1,
+        device: th.device | str = "cpu",
+        seed: Optional[int] = None,
+    ) -> None:
+        if not isinstance(action_space, spaces.Discrete):
+            raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
+        if exploration_steps < 1:
+            raise ValueError(f"exploration_steps must be >= 1, got {exploration_steps}")
+        unknown = set(subpolicy_kwargs or {}) - _USED - _IGNORED
+        if unknown:
+            raise ValueError(f"Unknown subpolicy_kwargs {sorted(unknown)}: the sub-goal learners take {sorted(_USED)}")
+        kw = {**default_subpolicy_kwargs(), **(subpolicy_kwargs or {})}
+        if callable(kw["learning_rate"]):
+            raise ValueError("subpolicy_kwargs['learning_rate'] must be a number (schedules are not supported)")
+        for name in ("train_freq", "gradient_steps", "target_update_interval", "batch_size"):
+            if isinstance(kw[name], (tuple, list)) or int(kw[name]) < 1:
+                raise ValueError(f"subpolicy_kwargs['{name}'] must be an integer >= 1 (counted in steps), got {kw[name]!r}")
+        self.observation_space, self.action_space = observation_space, action_space
+        self.kwargs = kw
+        self.lr, self.gamma = float(kw["learning_rate"]), float(kw["gamma"])
+        self.batch_size, self.learning_starts = int(kw["batch_size"]), int(kw["learning_starts"])
+        self.train_freq, self.gradient_steps = int(kw["train_freq"]), int(kw["gradient_steps"])
+        self.target_update_interval = int(kw["target_update_interval"])
+        self.eps_initial, self.eps_final = float(kw["exploration_initial_eps"]), float(kw["exploration_final_eps"])
+        self.max_grad_norm, self.double_q = float(kw["max_grad_norm"]), bool(kw["double_q"])
+        self.exploration_steps, self.train_shared = int(exploration_steps), bool(train_shared)
+        self.device = th.device(device)
+        self.seed = seed
+        replay_kwargs = dict(kw.get("replay_buffer_kwargs") or {})
+        lower_bound = bool(replay_kwargs.pop("off_policy_lower_bound", False))
+        if replay_kwargs:
+            raise ValueError(f"Unknown subpolicy replay_buffer_kwargs {sorted(replay_kwargs)}: only off_policy_lower_bound")
+        self.replay = SharedReplay(
+            int(kw["buffer_size"]), observation_space, action_space, achieved, n_envs=n_envs, alpha=alpha, gamma=self.gamma,
+            n_steps=int(kw["n_steps"]), lower_bound=lower_bound, share_experience=share_experience,
+            priority_alpha=kw["prioritized_replay_alpha"], priority_beta=kw["prioritized_replay_beta"],
+            priority_eps=kw["prioritized_replay_eps"], seed=seed,
+        )
+        # SB3's CNN reads channel-first images: the env's channel-last frames are turned when they reach a network
+        self._transpose = is_image_space(observation_space) and not is_image_space_channels_first(observation_space)
+        net_space = observation_space
+        if self._transpose:
+            h, w, c = observation_space.shape
+            net_space = spaces.Box(0, 255, (c, h, w), observation_space.dtype)
+        policy_class = {"MlpPolicy": MlpPolicy, "CnnPolicy": CnnPolicy}.get(policy) if isinstance(policy, str) else policy
+        if policy_class is None:
+            raise ValueError(f"Sub-goal learners use 'MlpPolicy' or 'CnnPolicy', got {policy!r}")
+        policy_kwargs = {k: v for k, v in dict(kw["policy_kwargs"] or {}).items() if k != "optimizer_kwargs"}
+        self._make_policy = lambda: policy_class(net_space, action_space, lambda _: self.lr, **policy_kwargs)
+        self._template = self._make_policy().q_net.to(self.device)
+        self._normalize_images = self._template.normalize_images
+        named = list(self._template.named_parameters())
+        self._names = [name for name, _ in named]
+        self._shapes = [tuple(value.shape) for _, value in named]
+        self._offsets = np.concatenate([[0], np.cumsum([value.numel() for _, value in named])]).tolist()
+        self._layers = _mlp_layers(self._template)  # a plain MLP: batched matrix products, no vmap
+        # every sub-goal's parameters as one row of a (capacity, P) tensor: the update is one Adam step on one tensor
+        self.params = th.zeros((0, self._offsets[-1]), device=self.device)
+        self.target = th.zeros_like(self.params)
+        self.exp_avg = th.zeros_like(self.params)
+        self.exp_avg_sq = th.zeros_like(self.params)
+        self.adam_steps = th.zeros(0, dtype=th.float64)
+        self._capacity = 0
+        self.own_steps = np.zeros(0, dtype=np.int64)  # steps each sub-goal acted
+        self.ticks = np.zeros(0, dtype=np.int64)  # learning ticks
+        self.n_updates = np.zeros(0, dtype=np.int64)
+        self.recent: list[deque] = []
+        self.successes: list[int] = []
+        self.attempts: list[int] = []
+        self._rng = np.random.default_rng(seed)
+        self.last_loss = float("nan")
+
+        def q_values(flat: th.Tensor, obs: th.Tensor) -> th.Tensor:
+            return functional_call(self._template, self._unflatten(flat), (obs,))
+
+        self._vq_generic = vmap(q_values)
+
+    # ------------------------------------------------------------------ the set
+    def __len__(self) -> int:
+        return len(self.recent)
+
+    def _unflatten(self, flat: th.Tensor) -> dict[str, th.Tensor]:
+        """Named parameter views of flat rows (any leading shape)."""
+        lead = flat.shape[:-1]
+        return {name: flat[..., start:stop].view(*lead, *shape)
+                for name, shape, start, stop in zip(self._names, self._shapes, self._offsets[:-1], self._offsets[1:])}
+
+    def _vq(self, flat: th.Tensor, obs: th.Tensor) -> th.Tensor:
+        """Q-values ``(T, B, A)`` of the learners whose flat parameters are ``flat`` ``(T, P)`` at ``obs`` ``(T, B, ...)``."""
+        if self._layers is None:
+            return self._vq_generic(flat, obs)
+        x = preprocess_obs(obs, self.observation_space, normalize_images=self._normalize_images).float()
+        x = x.reshape(*obs.shape[:2], -1)
+        params = self._unflatten(flat)
+        for kind, item in self._layers:
+            if kind == "linear":
+                weight, bias = params[item + ".weight"], params[item + ".bias"]
+                x = th.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
+            else:
+                x = item(x)
+        return x
+
+    def _grow(self, capacity: int) -> None:
+        def extend(old: th.Tensor) -> th.Tensor:
+            new = th.zeros((capacity, old.shape[1]), dtype=old.dtype, device=self.device)
+            new[: old.shape[0]] = old
+            return new
+
+        self.params, self.target = extend(self.params), extend(self.target)
+        self.exp_avg, self.exp_avg_sq = extend(self.exp_avg), extend(self.exp_avg_sq)
+        steps = th.zeros(capacity, dtype=th.float64)
+        steps[: len(self.adam_steps)] = self.adam_steps
+        self.adam_steps = steps
+        self._capacity = capacity
+
+    def add(self, goal_key: Hashable) -> int:
+        """A freshly initialised learner for a new sub-goal (section 5.1: random initialisation); its batches
+        are relabelled from everything already stored."""
+        goal = len(self)
+        if goal >= self._capacity:
+            self._grow(max(4, 2 * self._capacity))
+        with th.random.fork_rng(devices=[]):
+            if self.seed is not None:
+                th.manual_seed(self.seed + goal)
+            fresh = self._make_policy().q_net
+        flat = th.cat([value.detach().reshape(-1) for _, value in fresh.named_parameters()]).to(self.device)
+        self.params[goal] = flat
+        self.target[goal] = flat
+        self.exp_avg[goal] = 0.0
+        self.exp_avg_sq[goal] = 0.0
+        self.adam_steps[goal] = 0
+        self.own_steps = np.append(self.own_steps, 0)
+        self.ticks = np.append(self.ticks, 0)
+        self.n_updates = np.append(self.n_updates, 0)
+        self.recent.append(deque(maxlen=100))
+        self.successes.append(0)
+        self.attempts.append(0)
+        self.replay.add_goal(goal_key)
+        return goal
+
+    def exploration_rate(self, goal: int) -> float:
+        """Epsilon of sub-goal ``goal``: linear from the initial to the final value over ``exploration_steps`` own steps."""
+        fraction = min(1.0, self.own_steps[goal] / self.exploration_steps)
+        return self.eps_initial + fraction * (self.eps_final - self.eps_initial)
+
+    def record_outcome(self, goal: int, success: bool) -> None:
+        self.attempts[goal] += 1
+        self.successes[goal] += int(success)
+        self.recent[goal].append(bool(success))
+
+    def success_rate(self, goal: int) -> Optional[float]:
+        """Share of the sub-goal's last 100 tries that reached it (None before any)."""
+        return float(np.mean(self.recent[goal])) if self.recent[goal] else None
+
+    # ------------------------------------------------------------------ acting
+    def _tensor(self, obs: np.ndarray) -> th.Tensor:
+        obs = np.moveaxis(obs, -1, -3) if self._transpose else obs
+        return th.as_tensor(np.ascontiguousarray(obs), device=self.device)
+
+    def q_values(self, goals: np.ndarray, obs: np.ndarray) -> th.Tensor:
+        """Q-values ``(n, A)`` of sub-goal ``goals[i]``'s learner at ``obs[i]``."""
+        goals = np.asarray(goals, dtype=np.int64)
+        with th.no_grad():
+            obs_t = self._tensor(np.asarray(obs))
+            return self._vq(self.params[th.as_tensor(goals, device=self.device)], obs_t[:, None])[:, 0]
+
+    def act(self, goals: np.ndarray, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """One primitive action per env: sub-goal ``goals[i]``'s learner at ``obs[i]``, epsilon-greedy unless
+        ``deterministic``."""
+        actions = self.q_values(goals, obs).argmax(dim=1).cpu().numpy()
+        if not deterministic:
+            explore = self._rng.random(len(actions)) < np.array([self.exploration_rate(int(g)) for g in goals])
+            if explore.any():
+                actions[explore] = self._rng.integers(int(self.action_space.n), size=int(explore.sum()))
+        return actions
+
+    # ------------------------------------------------------------------ learning
+    def observe(self, obs: np.ndarray, actions: np.ndarray, next_obs: np.ndarray, keys: list, terminated: np.ndarray,
+                truncated: np.ndarray, gave_up: np.ndarray, acting: np.ndarray, intrinsic: np.ndarray) -> None:
+        """One primitive step of every env (Algorithm 1 lines 19-20): store it once, then the learning ticks
+        of the sub-goals it counts for, and their updates when due (one grouped update for all of them)."""
+        replay = self.replay
+        key_ids = np.array([replay.key_id(key) for key in keys], dtype=np.int32)
+        acting = np.asarray(acting, dtype=np.int64)
+        replay.add(obs, actions, next_obs, key_ids, terminated, truncated, gave_up, acting, intrinsic)
+        n_goals = len(self)
+        counted = acting[acting >= 0]
+        np.add.at(self.own_steps, counted, 1)
+        before = self.ticks.copy()
+        if self.train_shared:
+            self.ticks += len(acting)
+        else:
+            np.add.at(self.ticks, counted, 1)
+        due_updates = self.ticks // self.train_freq - before // self.train_freq  # (K,) update rounds due
+        due_targets = self.ticks // self.target_update_interval > before // self.target_update_interval
+        ready = replay.size() * replay.n_envs >= max(self.learning_starts, self.batch_size)
+        if ready and due_updates.any():
+            totals = replay.trees.total(np.arange(n_goals))
+            rounds = int(due_updates.max()) * self.gradient_steps
+            for r in range(rounds):
+                goals = np.flatnonzero((due_updates * self.gradient_steps > r) & (totals > 0))
+                if len(goals):
+                    self.train(goals)
+        if due_targets.any():
+            index = th.as_tensor(np.flatnonzero(due_targets), device=self.device)
+            self.target[index] = self.params[index]
+
+    def train(self, goals: np.ndarray) -> float:
+        """One gradient step for each sub-goal of ``goals``, all in one grouped call: a prioritized batch per
+        sub-goal, the Double DQN target of its n-step returns (raised to the behaviour's return with the lower
+        bound), the importance-weighted Huber loss, each sub-goal's gradient clipped to ``max_grad_norm``, Adam."""
+        batch = self.replay.sample(goals, self.batch_size)
+        index = th.as_tensor(goals, device=self.device)
+        params = self.params[index].requires_grad_()
+        as_t = lambda x: th.as_tensor(x, device=self.device)  # noqa: E731
+        lower_bound = batch.behaviour_returns is not None
+        with th.no_grad():
+            # the closing states of the own returns and (lower bound) of the behaviour's, in one forward per network
+            next_obs = batch.next_observations
+            if lower_bound:
+                next_obs = np.concatenate([next_obs, batch.behaviour_next_observations], axis=1)
+            next_obs_t = self._tensor(next_obs)
+            next_q_target = self._vq(self.target[index], next_obs_t)  # (T, B or 2B, A)
+            next_q_online = self._vq(params.detach(), next_obs_t) if self.double_q else next_q_target
+            next_q = next_q_target.gather(-1, next_q_online.argmax(-1, keepdim=True))[..., 0]
+            n = len(batch.returns[0])
+            y = as_t(batch.returns) + as_t(batch.discounts) * (1 - as_t(batch.dones)) * next_q[:, :n]
+            if lower_bound:  # optimality tightening: the behaviour's return is a lower bound
+                y_behaviour = (as_t(batch.behaviour_returns)
+                               + as_t(batch.behaviour_discounts) * (1 - as_t(batch.behaviour_dones)) * next_q[:, n:])
+                y = th.maximum(y, y_behaviour)
+        actions = as_t(batch.actions.reshape(len(goals), -1, 1).astype(np.int64))
+        q = self._vq(params, self._tensor(batch.observations)).gather(-1, actions)[..., 0]
+        weights = as_t(batch.weights)
+        loss = (weights * F.smooth_l1_loss(q, y, reduction="none")).mean(dim=1)  # (T,): each sub-goal's own loss
+        (grad,) = th.autograd.grad(loss.sum(), [params])
+        self._adam(index, grad)
+        td_errors = (y - q).detach().abs().cpu().numpy()
+        self.replay.update_priorities(goals, batch.leaves, td_errors)
+        self.n_updates[goals] += 1
+        self.last_loss = float(loss.mean().detach())
+        return self.last_loss
+
+    def _adam(self, index: th.Tensor, grad: th.Tensor, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8) -> None:
+        """Adam (torch's defaults) with each sub-goal's own step count, after clipping each sub-goal's gradient
+        norm to ``max_grad_norm`` (as SB3 clips a model's)."""
+        scale = th.clamp(self.max_grad_norm / (grad.norm(dim=1, keepdim=True) + 1e-6), max=1.0)
+        grad = grad * scale
+        self.adam_steps[index] += 1
+        steps = self.adam_steps[index]
+        correction1 = (1 - betas[0] ** steps).float().unsqueeze(1)
+        correction2 = (1 - betas[1] ** steps).float().unsqueeze(1)
+        m = self.exp_avg[index].mul_(betas[0]).add_(grad, alpha=1 - betas[0])
+        v = self.exp_avg_sq[index].mul_(betas[1]).addcmul_(grad, grad, value=1 - betas[1])
+        self.exp_avg[index] = m
+        self.exp_avg_sq[index] = v
+        self.params[index] = self.params[index] - self.lr * (m / correction1) / ((v / correction2).sqrt() + eps)
+
+    # ------------------------------------------------------------------ SB3 views, save / load
+    def policy(self, goal: int) -> DQNPolicy:
+        """Sub-goal ``goal``'s learner as an SB3 ``DQNPolicy`` (its online and target networks)."""
+        policy = self._make_policy()
+        policy.q_net.load_state_dict({name: value.clone() for name, value in self._unflatten(self.params[goal]).items()})
+        policy.q_net_target.load_state_dict({name: value.clone() for name, value in self._unflatten(self.target[goal]).items()})
+        return policy
+
+    def state_dict(self) -> dict[str, Any]:
+        """Weights, target weights, Adam moments and counters of every sub-goal (the replay is not saved, as in SB3)."""
+        n = len(self)
+        return {
+            "format": "sb3_hhp.StackedDQN",
+            "names": list(self._names),
+            "params": self.params[:n].clone(),
+            "target": self.target[:n].clone(),
+            "exp_avg": self.exp_avg[:n].clone(),
+            "exp_avg_sq": self.exp_avg_sq[:n].clone(),
+            "adam_steps": self.adam_steps[:n].clone(),
+            "own_steps": self.own_steps.tolist(), "ticks": self.ticks.tolist(), "n_updates": self.n_updates.tolist(),
+            "recent": [list(r) for r in self.recent], "successes": list(self.successes), "attempts": list(self.attempts),
+            "goal_keys": list(self.replay.goal_keys),
+        }
+
+    def load_state_dict(self, state: Any) -> None:
+        if not isinstance(state, dict) or state.get("format") != "sb3_hhp.StackedDQN":
+            raise ValueError("These sub-goal learners were saved by an older sb3_hhp (one SB3 model per sub-goal), which "
+                             "this version cannot load: train the model again")
+        for key in state["goal_keys"]:
+            self.add(key)
+        n = len(self)
+        if list(state["names"]) != self._names or state["params"].shape[1] != self.params.shape[1]:
+            raise ValueError("The saved sub-goal learners have another network than subpolicy_kwargs builds: load the "
+                             "model with the subpolicy_kwargs it was trained with")
+        self.params[:n], self.target[:n] = state["params"].to(self.device), state["target"].to(self.device)
+        self.exp_avg[:n], self.exp_avg_sq[:n] = state["exp_avg"].to(self.device), state["exp_avg_sq"].to(self.device)
+        self.adam_steps[:n] = state["adam_steps"]
+        self.own_steps = np.array(state["own_steps"], dtype=np.int64)
+        self.ticks = np.array(state["ticks"], dtype=np.int64)
+        self.n_updates = np.array(state["n_updates"], dtype=np.int64)
+        self.recent = [deque(r, maxlen=100) for r in state["recent"]]
+        self.successes, self.attempts = list(state["successes"]), list(state["attempts"])

@@ -1,0 +1,320 @@
+"""One replay of primitive transitions shared by every sub-goal, relabelled when a batch is sampled.
+
+Every primitive step of every env is stored once: ``s, a, s'``, the id of the sub-goal key of ``s'``,
+``terminated`` / ``truncated``, whether the acting sub-goal gave up there, which sub-goal acted, and the
+intrinsic reward ``r^i`` (eq. 7). A sub-goal's reward (eq. 5, 6) and terminal flag are computed only when a
+batch is drawn for it, from ``done(s', g)`` (as HER relabels goals at sample time), so memory does not grow
+with the number of sub-goals K and a sub-goal found late learns at once from everything stored before it.
+
+What the learners rest on is kept from the per-sub-goal buffers this replaces:
+
+- n-step returns along the sub-goal's own behaviour: from a transition where ``g`` acted, the return runs
+  over the following transitions of the same env while ``g`` still acts, and stops at ``terminal(s, g)``, at a
+  time limit (the env's, or ``g``'s give-up) or at the newest transition; a transition where another sub-goal
+  acted is a one-step transition for ``g``;
+- optionally (``lower_bound``), the n-step return along the stored behaviour, whoever acted, as a lower bound
+  on the target ("optimality tightening");
+- proportional prioritized replay, one sum tree per sub-goal (a transition can matter to one sub-goal and
+  not to another).
+"""
+
+from collections.abc import Callable, Hashable
+from typing import NamedTuple, Optional
+
+import numpy as np
+from gymnasium import spaces
+
+from sb3_hhp.preferences.rewards import pseudo_reward, subpolicy_reward
+
+
+class GoalTrees:
+    """``n_trees`` proportional-priority sum trees over the same ``capacity`` leaves, stored as one array.
+
+    New leaves get the largest priority seen so far in their tree; their ancestors are refreshed lazily, in one
+    vectorised pass before the next draw, so the per-step cost does not grow with the number of trees.
+    """
+
+    def __init__(self, n_trees: int, capacity: int) -> None:
+        self.capacity = int(capacity)
+        self._size = 1 << int(np.ceil(np.log2(max(2, self.capacity))))
+        self._depth = int(np.log2(self._size))
+        self._sum = np.zeros((n_trees, 2 * self._size), dtype=np.float64)
+        self.max_priority = np.ones(n_trees, dtype=np.float64)
+        self._pending: list[np.ndarray] = []
+
+    @property
+    def n_trees(self) -> int:
+        return self._sum.shape[0]
+
+    def grow(self, n_trees: int) -> None:
+        """Room for ``n_trees`` trees (new ones empty)."""
+        if n_trees > self.n_trees:
+            self._flush()
+            extra = n_trees - self.n_trees
+            self._sum = np.concatenate([self._sum, np.zeros((extra, self._sum.shape[1]))])
+            self.max_priority = np.concatenate([self.max_priority, np.ones(extra)])
+
+    def fill(self, tree: int, leaves: np.ndarray, priority: float = 1.0) -> None:
+        """Give every leaf of ``leaves`` the priority ``priority`` in tree ``tree`` (a new sub-goal)."""
+        self._flush()
+        self._sum[tree] = 0.0
+        self._sum[tree, self._size + leaves] = priority
+        for level in range(self._depth - 1, -1, -1):  # rebuild bottom-up
+            start, stop = 1 << level, 2 << level
+            self._sum[tree, start:stop] = self._sum[tree, 2 * start : 2 * stop : 2] + self._sum[tree, 2 * start + 1 : 2 * stop : 2]
+
+    def add(self, leaves: np.ndarray, trees: np.ndarray) -> None:
+        """New ``leaves`` with each tree's largest priority, in the trees where ``trees[k]`` is True, 0 elsewhere."""
+        self._sum[:, self._size + leaves] = np.where(trees[:, None], self.max_priority[:, None], 0.0)
+        self._pending.append(np.asarray(leaves))
+
+    def _flush(self) -> None:
+        if not self._pending:
+            return
+        nodes = (np.unique(np.concatenate(self._pending)) + self._size) >> 1
+        self._pending = []
+        for _ in range(self._depth):
+            nodes = np.unique(nodes)
+            self._sum[:, nodes] = self._sum[:, 2 * nodes] + self._sum[:, 2 * nodes + 1]
+            nodes = nodes >> 1
+
+    def total(self, trees: np.ndarray) -> np.ndarray:
+        self._flush()
+        return self._sum[trees, 1]
+
+    def update(self, trees: np.ndarray, leaves: np.ndarray, priorities: np.ndarray) -> None:
+        """Set ``priorities`` (shape ``(T, B)``) of ``leaves`` (same shape) in ``trees`` (shape ``(T,)``)."""
+        self._flush()
+        rows = np.broadcast_to(np.asarray(trees)[:, None], leaves.shape)
+        self._sum[rows, self._size + leaves] = priorities
+        self.max_priority[trees] = np.maximum(self.max_priority[trees], priorities.max(axis=1))
+        nodes = (self._size + leaves) >> 1
+        for _ in range(self._depth):
+            self._sum[rows, nodes] = self._sum[rows, 2 * nodes] + self._sum[rows, 2 * nodes + 1]
+            nodes = nodes >> 1
+
+    def sample(self, trees: np.ndarray, batch_size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """``batch_size`` stratified draws in each of ``trees``: leaves ``(T, B)`` and their probabilities."""
+        totals = self.total(trees)
+        values = (np.arange(batch_size)[None, :] + rng.random((len(trees), batch_size))) * (totals[:, None] / batch_size)
+        rows = np.broadcast_to(np.asarray(trees)[:, None], values.shape)
+        nodes = np.ones(values.shape, dtype=np.int64)
+        for _ in range(self._depth):
+            left = 2 * nodes
+            left_sum = self._sum[rows, left]
+            go_right = (values >= left_sum) & (self._sum[rows, left + 1] > 0)
+            values = np.where(go_right, values - left_sum, values)
+            nodes = np.where(go_right, left + 1, left)
+        return nodes - self._size, self._sum[rows, nodes] / totals[:, None]
+
+
+class GoalBatch(NamedTuple):
+    """A batch drawn for each of T sub-goals, as NumPy arrays with a leading ``(T, B)``."""
+
+    goals: np.ndarray  # (T,) the sub-goals the batch was drawn for
+    observations: np.ndarray  # (T, B, *obs)
+    actions: np.ndarray  # (T, B, *act)
+    returns: np.ndarray  # (T, B) n-step returns of eq. 6 rewards
+    next_observations: np.ndarray  # (T, B, *obs) the state closing the return
+    dones: np.ndarray  # (T, B) terminal(s, g) at the closing state (time limits excluded)
+    discounts: np.ndarray  # (T, B) gamma^m
+    weights: np.ndarray  # (T, B) importance-sampling weights, largest 1 in each sub-goal's batch
+    leaves: np.ndarray  # (T, B) flat indices, for the priority update
+    behaviour_returns: Optional[np.ndarray] = None  # the lower bound: the same along the stored behaviour
+    behaviour_next_observations: Optional[np.ndarray] = None
+    behaviour_dones: Optional[np.ndarray] = None
+    behaviour_discounts: Optional[np.ndarray] = None
+
+
+class SharedReplay:
+    """The primitive transitions of ``n_envs`` envs, ``capacity`` per env, for every sub-goal at once.
+
+    :param capacity: transitions kept per env (the oldest are overwritten), ``>= 1``
+    :param observation_space: the primitive observation space (stored in its own dtype: uint8 grids stay uint8)
+    :param action_space: the primitive action space
+    :param achieved: ``done(s, g)`` from two sub-goal keys (the goal space's :meth:`~sb3_hhp.goals.GoalSpace.achieved`)
+    :param n_envs: number of env streams
+    :param alpha: weight of the intrinsic reward in eq. 6
+    :param gamma: discount of the n-step returns
+    :param n_steps: length of the n-step returns (1: one-step)
+    :param lower_bound: also draw the return along the stored behaviour (needs ``n_steps > 1``)
+    :param share_experience: every sub-goal learns from every transition; False: only from its own
+    :param priority_alpha, priority_beta, priority_eps: prioritized replay's alpha, beta and epsilon
+    :param seed: seed of the draws
+    """
+
+    def __init__(
+        self,
+        capacity: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        achieved: Callable[[Hashable, Hashable], bool],
+        n_envs: int = 1,
+        alpha: float = 0.5,
+        gamma: float = 0.99,
+        n_steps: int = 1,
+        lower_bound: bool = False,
+        share_experience: bool = True,
+        priority_alpha: float = 0.6,
+        priority_beta: float = 0.4,
+        priority_eps: float = 1e-6,
+        seed: Optional[int] = None,
+    ) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {capacity}")
+        if n_envs < 1:
+            raise ValueError(f"n_envs must be >= 1, got {n_envs}")
+        if int(n_steps) != n_steps or n_steps < 1:
+            raise ValueError(f"n_steps must be an integer >= 1, got {n_steps}")
+        if lower_bound and n_steps < 2:
+            raise ValueError("off_policy_lower_bound needs n_steps > 1 (it is an n-step return along the behaviour)")
+        if isinstance(observation_space, spaces.Dict):
+            raise ValueError("the shared replay stores Box observations; flatten Dict observations first")
+        self.capacity, self.n_envs = int(capacity), int(n_envs)
+        self.alpha, self.gamma, self.n_steps = float(alpha), float(gamma), int(n_steps)
+        self.lower_bound, self.share_experience = bool(lower_bound), bool(share_experience)
+        self.priority_alpha, self.priority_beta, self.priority_eps = priority_alpha, priority_beta, priority_eps
+        self._achieved = achieved
+        shape = (self.capacity, self.n_envs)
+        self.observations = np.zeros((*shape, *observation_space.shape), dtype=observation_space.dtype)
+        self.next_observations = np.zeros_like(self.observations)
+        self.actions = np.zeros((*shape, *action_space.shape), dtype=action_space.dtype)
+        self.key_ids = np.zeros(shape, dtype=np.int32)  # id of the sub-goal key of s'
+        self.terminated = np.zeros(shape, dtype=bool)
+        self.truncated = np.zeros(shape, dtype=bool)  # the env's time limit
+        self.gave_up = np.zeros(shape, dtype=bool)  # the acting sub-goal's give-up (its own time limit)
+        self.acting = np.full(shape, -1, dtype=np.int32)  # the sub-goal that acted (-1: none)
+        self.intrinsic = np.zeros(shape, dtype=np.float32)  # r^i (eq. 7)
+        self.pos, self.full = 0, False
+        self.keys: dict[Hashable, int] = {}
+        self.goal_keys: list[Hashable] = []
+        self._done_table = np.zeros((16, 4), dtype=bool)  # done(key id, goal id)
+        self.trees = GoalTrees(4, self.capacity * self.n_envs)
+        self._rng = np.random.default_rng(seed)
+
+    # ------------------------------------------------------------------ keys and sub-goals
+    @property
+    def n_goals(self) -> int:
+        return len(self.goal_keys)
+
+    def size(self) -> int:
+        """Transitions stored per env."""
+        return self.capacity if self.full else self.pos
+
+    def key_id(self, key: Hashable) -> int:
+        """The id of a sub-goal key (new keys get the next id and their row of ``done``)."""
+        key_id = self.keys.get(key)
+        if key_id is None:
+            key_id = self.keys[key] = len(self.keys)
+            if key_id >= self._done_table.shape[0]:
+                self._done_table = np.concatenate([self._done_table, np.zeros_like(self._done_table)])
+            self._done_table[key_id, : self.n_goals] = [self._achieved(key, goal) for goal in self.goal_keys]
+        return key_id
+
+    def add_goal(self, goal_key: Hashable) -> int:
+        """A new sub-goal: its column of ``done`` and its sum tree over everything stored (it may learn from it all)."""
+        goal = self.n_goals
+        self.goal_keys.append(goal_key)
+        if goal >= self._done_table.shape[1]:
+            self._done_table = np.concatenate([self._done_table, np.zeros_like(self._done_table)], axis=1)
+        for key, key_id in self.keys.items():
+            self._done_table[key_id, goal] = self._achieved(key, goal_key)
+        self.trees.grow(max(self.trees.n_trees * (2 if goal >= self.trees.n_trees else 1), goal + 1))
+        stored = np.arange(self.size() * self.n_envs)
+        if not self.share_experience:
+            stored = stored[self.acting.reshape(-1)[stored] == goal]
+        self.trees.fill(goal, stored)
+        return goal
+
+    def done(self, key_ids: np.ndarray, goals: np.ndarray) -> np.ndarray:
+        """``done(s, g)`` for arrays of key ids and sub-goals (broadcast)."""
+        return self._done_table[key_ids, goals]
+
+    # ------------------------------------------------------------------ storing
+    def add(self, obs: np.ndarray, action: np.ndarray, next_obs: np.ndarray, key_ids: np.ndarray, terminated: np.ndarray,
+            truncated: np.ndarray, gave_up: np.ndarray, acting: np.ndarray, intrinsic: np.ndarray) -> None:
+        """One primitive transition per env (arrays with a leading ``n_envs``)."""
+        pos = self.pos
+        self.observations[pos] = obs
+        self.next_observations[pos] = next_obs
+        self.actions[pos] = np.asarray(action).reshape(self.actions.shape[1:])
+        self.key_ids[pos] = key_ids
+        self.terminated[pos] = terminated
+        self.truncated[pos] = truncated
+        self.gave_up[pos] = gave_up
+        self.acting[pos] = acting
+        self.intrinsic[pos] = intrinsic
+        leaves = pos * self.n_envs + np.arange(self.n_envs)
+        n_goals = self.n_goals
+        if n_goals:
+            if self.share_experience:
+                learns = np.ones(n_goals, dtype=bool)
+            else:
+                learns = (np.arange(n_goals)[:, None] == np.asarray(acting)[None, :]).any(axis=1)
+            self.trees.add(leaves, np.concatenate([learns, np.zeros(self.trees.n_trees - n_goals, dtype=bool)]))
+        self.pos = (pos + 1) % self.capacity
+        self.full = self.full or self.pos == 0
+
+    # ------------------------------------------------------------------ drawing
+    def sample(self, goals: np.ndarray, batch_size: int) -> GoalBatch:
+        """A prioritized batch of ``batch_size`` transitions for each sub-goal of ``goals``, with that sub-goal's
+        n-step returns of eq. 6 rewards computed now from ``done(s', g)``."""
+        goals = np.asarray(goals, dtype=np.int64)
+        leaves, probabilities = self.trees.sample(goals, batch_size, self._rng)
+        n_stored = self.size() * self.n_envs
+        weights = (n_stored * np.maximum(probabilities, 1e-12)) ** (-self.priority_beta)
+        weights /= weights.max(axis=1, keepdims=True)
+        rows, cols = np.divmod(leaves, self.n_envs)
+        goal_grid = goals[:, None]
+        returns, last, discounts, dones = self._n_step(rows, cols, goal_grid, own=True)
+        extra = {}
+        if self.lower_bound:
+            b_returns, b_last, b_discounts, b_dones = self._n_step(rows, cols, goal_grid, own=False)
+            extra = dict(behaviour_returns=b_returns, behaviour_next_observations=self.next_observations[b_last, cols],
+                         behaviour_dones=b_dones, behaviour_discounts=b_discounts)
+        return GoalBatch(
+            goals=goals, observations=self.observations[rows, cols], actions=self.actions[rows, cols], returns=returns,
+            next_observations=self.next_observations[last, cols], dones=dones, discounts=discounts,
+            weights=weights.astype(np.float32), leaves=leaves, **extra,
+        )
+
+    def rewards(self, rows: np.ndarray, cols: np.ndarray, goals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Eq. 5 and 6 for sub-goals ``goals`` at stored transitions: the reward, ``terminal(s', g)`` (the env's
+        own end, or ``done(s', g)``) and whether a time limit cut ``g`` there (the env's, or ``g``'s give-up)."""
+        done = self.done(self.key_ids[rows, cols], goals)
+        terminal = done | self.terminated[rows, cols]
+        cut = (self.truncated[rows, cols] | (self.gave_up[rows, cols] & (self.acting[rows, cols] == goals))) & ~terminal
+        reward = subpolicy_reward(pseudo_reward(done, terminal), self.intrinsic[rows, cols], self.alpha)  # eq. 5, 6
+        return np.asarray(reward, dtype=np.float64), terminal, cut
+
+    def _n_step(self, rows: np.ndarray, cols: np.ndarray, goals: np.ndarray, own: bool):
+        """The n-step return from each drawn transition (shapes ``(T, B)``): it runs over the transitions of
+        the same env stored after it and stops at ``terminal(s, g)``, a time limit, the newest transition or
+        after n; with ``own``, also where ``g`` did not act next (a transition ``g`` did not act in is a
+        one-step return). :return: returns, the row closing each return, ``gamma^m``, and its terminal flag."""
+        steps = np.arange(self.n_steps)
+        seq = (rows[..., None] + steps) % self.capacity  # (T, B, n)
+        seq_cols = cols[..., None]
+        seq_goals = goals[..., None]
+        reward, terminal, cut = self.rewards(seq, seq_cols, seq_goals)
+        newer = (self.pos - 1 - rows) % self.capacity  # transitions of this env stored after the drawn one
+        stop = terminal | cut | (steps >= newer[..., None])
+        if own:
+            acts = self.acting[seq, seq_cols] == seq_goals
+            next_acts = self.acting[(seq + 1) % self.capacity, seq_cols] == seq_goals
+            stop |= ~acts | ~next_acts
+        stop[..., -1] = True
+        last = stop.argmax(axis=-1)  # m - 1
+        mask = steps <= last[..., None]
+        returns = (reward * self.gamma ** steps * mask).sum(axis=-1).astype(np.float32)
+        last_rows = np.take_along_axis(seq, last[..., None], axis=-1)[..., 0]
+        dones = np.take_along_axis(terminal, last[..., None], axis=-1)[..., 0].astype(np.float32)
+        return returns, last_rows, (self.gamma ** (last + 1)).astype(np.float32), dones
+
+    def update_priorities(self, goals: np.ndarray, leaves: np.ndarray, td_errors: np.ndarray) -> None:
+        """``p = (|delta| + eps)^alpha`` for the drawn transitions of each sub-goal."""
+        self.trees.update(np.asarray(goals), leaves, (np.abs(td_errors) + self.priority_eps) ** self.priority_alpha)
+
+    def nbytes(self) -> int:
+        return sum(array.nbytes for array in (self.observations, self.next_observations, self.actions, self.key_ids,
+                                                self.terminated, self.truncated, self.gave_up, self.acting, self.intrinsic))
