@@ -1,0 +1,217 @@
+"""The shared replay (eq. 5 and 6 computed when a batch is drawn, n-step returns, the lower bound, per-sub-goal
+priorities) and the stacked sub-goal learners (one grouped Double DQN update equal to SB3's, sub-goal by sub-goal)."""
+
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from torch.nn import functional as F
+
+from sb3_hhp.hierarchy.learners import StackedDQN
+from sb3_hhp.hierarchy.replay import GoalBatch, GoalTrees, SharedReplay
+
+OBS = spaces.Box(0, 255, (3,), np.uint8)
+ACTIONS = spaces.Discrete(3)
+
+
+def equal_keys(key, goal_key) -> bool:
+    return key == goal_key
+
+
+def fill(replay: SharedReplay, keys: list, acting: list, terminated=None, truncated=None, gave_up=None, intrinsic=None) -> None:
+    n = len(keys)
+    terminated = terminated or [False] * n
+    truncated = truncated or [False] * n
+    gave_up = gave_up or [False] * n
+    intrinsic = intrinsic if intrinsic is not None else [0.0] * n
+    for t in range(n):
+        replay.add(np.full((1, 3), t, np.uint8), np.array([t % 3]), np.full((1, 3), t + 1, np.uint8),
+                   np.array([replay.key_id(keys[t])]), np.array([terminated[t]]), np.array([truncated[t]]),
+                   np.array([gave_up[t]]), np.array([acting[t]]), np.array([intrinsic[t]], np.float32))
+
+
+def test_eq5_and_eq6_are_computed_for_each_subgoal_when_drawn() -> None:
+    replay = SharedReplay(16, OBS, ACTIONS, equal_keys, alpha=0.5)
+    replay.add_goal("A")
+    replay.add_goal("B")
+    intrinsic = [0.2, 0.4, 0.6, 0.8, 1.0]
+    fill(replay, ["x", "A", "x", "B", "x"], acting=[0, 0, 1, 1, 1], terminated=[False, False, False, False, True],
+         intrinsic=intrinsic)
+    rows, cols = np.arange(5), np.zeros(5, dtype=int)
+    r_a, terminal_a, cut_a = replay.rewards(rows, cols, np.zeros(5, dtype=int))
+    r_b, terminal_b, _ = replay.rewards(rows, cols, np.ones(5, dtype=int))
+    # eq. 5: +1 where done(s', g), -1 where the episode terminated without it, else 0; eq. 6 adds alpha * r^i
+    np.testing.assert_allclose(r_a, np.array([0, 1, 0, 0, -1]) + 0.5 * np.array(intrinsic), rtol=1e-6)
+    np.testing.assert_allclose(r_b, np.array([0, 0, 0, 1, -1]) + 0.5 * np.array(intrinsic), rtol=1e-6)
+    assert terminal_a.tolist() == [False, True, False, False, True]
+    assert terminal_b.tolist() == [False, False, False, True, True]
+    assert not cut_a.any()
+
+
+def test_a_give_up_cuts_only_the_acting_subgoal_and_a_time_limit_cuts_all() -> None:
+    replay = SharedReplay(16, OBS, ACTIONS, equal_keys)
+    replay.add_goal("A")
+    replay.add_goal("B")
+    fill(replay, ["x", "x", "x"], acting=[1, 1, 0], gave_up=[False, True, False], truncated=[False, False, True])
+    rows, cols = np.arange(3), np.zeros(3, dtype=int)
+    assert replay.rewards(rows, cols, np.zeros(3, dtype=int))[2].tolist() == [False, False, True]
+    assert replay.rewards(rows, cols, np.ones(3, dtype=int))[2].tolist() == [False, True, True]
+
+
+def test_n_step_returns_follow_the_subgoals_own_behaviour_and_the_lower_bound_all_of_it() -> None:
+    gamma = 0.5
+    replay = SharedReplay(16, OBS, ACTIONS, equal_keys, alpha=1.0, gamma=gamma, n_steps=3, lower_bound=True)
+    replay.add_goal("A")
+    replay.add_goal("B")
+    r_i = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0]
+    fill(replay, ["x", "x", "B", "x", "x", "x", "x"], acting=[1, 1, 1, 0, 0, 1, 1], intrinsic=r_i)
+    rows = np.array([[0, 3], [0, 3]])  # (T=2 sub-goals, B=2 draws)
+    cols = np.zeros_like(rows)
+    goals = np.array([[1], [0]])
+    returns, last, discounts, dones = replay._n_step(rows, cols, goals, own=True)
+    # sub-goal B from row 0: its own steps 0, 1, 2, stopped by done(s', B) at row 2
+    assert returns[0, 0] == pytest.approx(1 + gamma * 2 + gamma**2 * (4 + 1))
+    assert (last[0, 0], discounts[0, 0], dones[0, 0]) == (2, gamma**3, 1.0)
+    # sub-goal B from row 3: A acted there, a one-step transition for B
+    assert returns[0, 1] == pytest.approx(8) and (last[0, 1], discounts[0, 1], dones[0, 1]) == (3, gamma, 0.0)
+    # sub-goal A from row 0: B acted: one step; from row 3: its own steps 3, 4, up to where B acts again
+    assert returns[1, 0] == pytest.approx(1) and last[1, 0] == 0
+    assert returns[1, 1] == pytest.approx(8 + gamma * 16) and (last[1, 1], discounts[1, 1]) == (4, gamma**2)
+    # the lower bound runs along the stored behaviour whoever acted: A from row 0 over rows 0, 1, 2
+    b_returns, b_last, b_discounts, _ = replay._n_step(rows, cols, goals, own=False)
+    assert b_returns[1, 0] == pytest.approx(1 + gamma * 2 + gamma**2 * 4) and (b_last[1, 0], b_discounts[1, 0]) == (2, gamma**3)
+    batch = replay.sample(np.array([0, 1]), 4)
+    assert batch.returns.shape == (2, 4) and batch.behaviour_returns.shape == (2, 4)
+    assert batch.observations.dtype == np.uint8  # stored in the observation space's own dtype
+
+
+def test_a_new_subgoal_learns_from_what_was_stored_before_it_and_only_its_own_without_sharing() -> None:
+    shared = SharedReplay(16, OBS, ACTIONS, equal_keys)
+    own_only = SharedReplay(16, OBS, ACTIONS, equal_keys, share_experience=False)
+    for replay in (shared, own_only):
+        replay.add_goal("A")
+        fill(replay, ["x"] * 6, acting=[0, 0, -1, -1, 0, -1])
+        replay.add_goal("B")  # found late
+    assert shared.trees.total(np.array([1]))[0] == pytest.approx(6.0)  # every stored step, at priority 1
+    assert own_only.trees.total(np.array([1]))[0] == 0.0  # it never acted
+    drawn = own_only.sample(np.array([0]), 64).leaves
+    assert set(drawn.ravel().tolist()) <= {0, 1, 4}
+
+
+def test_goal_trees_draw_in_proportion_to_each_trees_priorities() -> None:
+    trees = GoalTrees(2, 5)
+    trees.add(np.arange(5), np.array([True, True]))
+    trees.update(np.array([0, 1]), np.array([[0, 1, 2, 3, 4], [0, 1, 2, 3, 4]]),
+                 np.array([[1.0, 2.0, 3.0, 4.0, 0.0], [0.0, 0.0, 0.0, 0.0, 5.0]]))
+    np.testing.assert_allclose(trees.total(np.array([0, 1])), [10.0, 5.0])
+    leaves, probabilities = trees.sample(np.array([0, 1]), 20_000, np.random.default_rng(0))
+    counts = np.bincount(leaves[0], minlength=5) / 20_000
+    np.testing.assert_allclose(counts, [0.1, 0.2, 0.3, 0.4, 0.0], atol=0.01)
+    assert (leaves[1] == 4).all() and np.allclose(probabilities[1], 1.0)
+
+
+def small_learners(**kwargs) -> StackedDQN:
+    sub_kwargs = dict(policy_kwargs=dict(net_arch=[8]), batch_size=4, learning_starts=4, train_freq=2, gamma=0.9,
+                      target_update_interval=5, learning_rate=0.01, max_grad_norm=0.5)
+    sub_kwargs.update(kwargs.pop("subpolicy_kwargs", {}))
+    return StackedDQN(spaces.Box(-1, 1, (3,), np.float32), ACTIONS, equal_keys, subpolicy_kwargs=sub_kwargs, seed=0, **kwargs)
+
+
+def fixed_batch(goals: np.ndarray, seed: int) -> GoalBatch:
+    rng = np.random.default_rng(seed)
+    t, b = len(goals), 4
+    return GoalBatch(
+        goals=goals, observations=rng.uniform(-1, 1, (t, b, 3)).astype(np.float32), actions=rng.integers(3, size=(t, b)),
+        returns=rng.normal(size=(t, b)).astype(np.float32), next_observations=rng.uniform(-1, 1, (t, b, 3)).astype(np.float32),
+        dones=rng.integers(2, size=(t, b)).astype(np.float32), discounts=np.full((t, b), 0.81, np.float32),
+        weights=rng.uniform(0.2, 1, (t, b)).astype(np.float32), leaves=np.zeros((t, b), dtype=np.int64),
+    )
+
+
+def test_one_grouped_update_equals_sb3s_double_dqn_step_for_every_subgoal(monkeypatch: pytest.MonkeyPatch) -> None:
+    learners = small_learners()
+    for goal in ("A", "B", "C"):
+        learners.add(goal)
+    fill(learners.replay, ["x"] * 8, acting=[0] * 8)
+    goals = np.array([0, 2])
+    batch = fixed_batch(goals, seed=1)
+    monkeypatch.setattr(learners.replay, "sample", lambda goals, batch_size: batch)
+    expected = {}
+    for row, goal in enumerate(goals):  # SB3's DQN policy, torch's Adam and clip_grad_norm_, one sub-goal at a time
+        policy = learners.policy(int(goal))
+        optimizer = th.optim.Adam(policy.q_net.parameters(), lr=0.01)
+        obs, next_obs = th.as_tensor(batch.observations[row]), th.as_tensor(batch.next_observations[row])
+        with th.no_grad():
+            next_action = policy.q_net(next_obs).argmax(dim=1, keepdim=True)  # double Q: online chooses
+            next_q = policy.q_net_target(next_obs).gather(1, next_action)[:, 0]  # target evaluates
+            y = th.as_tensor(batch.returns[row]) + 0.81 * (1 - th.as_tensor(batch.dones[row])) * next_q
+        q = policy.q_net(obs).gather(1, th.as_tensor(batch.actions[row]).long()[:, None])[:, 0]
+        loss = (th.as_tensor(batch.weights[row]) * F.smooth_l1_loss(q, y, reduction="none")).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        th.nn.utils.clip_grad_norm_(policy.q_net.parameters(), 0.5)
+        optimizer.step()
+        expected[int(goal)] = th.cat([p.detach().reshape(-1) for p in policy.q_net.parameters()])
+    untouched = learners.params[1].clone()
+    learners.train(goals)
+    for goal, params in expected.items():
+        th.testing.assert_close(learners.params[goal], params, rtol=1e-5, atol=1e-6)
+    th.testing.assert_close(learners.params[1], untouched)  # a sub-goal that was not due does not move
+    assert learners.n_updates.tolist() == [1, 0, 1]
+
+
+def test_updates_follow_the_train_frequency_in_one_call_whatever_the_number_of_subgoals(monkeypatch) -> None:
+    for n_goals in (2, 12):
+        learners = small_learners(train_shared=True)
+        for goal in range(n_goals):
+            learners.add(goal)
+        calls = []
+        original = learners.train
+        monkeypatch.setattr(learners, "train", lambda goals: calls.append(len(goals)) or original(goals))
+        fill(learners.replay, ["x"] * 3, acting=[0] * 3)
+        learners.own_steps[:] = 0
+        for step in range(10):
+            learners.observe(np.zeros((1, 3), np.float32), np.array([0]), np.zeros((1, 3), np.float32), ["x"],
+                             np.array([False]), np.array([False]), np.array([False]), np.array([1]), np.zeros(1, np.float32))
+        # a tick per step for every sub-goal: an update round every 2 ticks, each one call for all sub-goals
+        assert calls == [n_goals] * 5
+        assert learners.own_steps.tolist() == [0, 10] + [0] * (n_goals - 2)
+        # targets follow every target_update_interval (5) ticks
+        th.testing.assert_close(learners.target[:n_goals], learners.params[:n_goals])
+
+
+def test_epsilon_decays_with_a_subgoals_own_steps() -> None:
+    learners = small_learners(exploration_steps=10)
+    learners.add("A")
+    assert learners.exploration_rate(0) == pytest.approx(1.0)
+    learners.own_steps[0] = 5
+    assert learners.exploration_rate(0) == pytest.approx(1.0 + 0.5 * (0.05 - 1.0))
+    learners.own_steps[0] = 50
+    assert learners.exploration_rate(0) == pytest.approx(0.05)
+
+
+def test_state_dict_round_trip_and_older_saves_are_refused() -> None:
+    learners = small_learners()
+    for goal in ("A", "B"):
+        learners.add(goal)
+    fill(learners.replay, ["x"] * 8, acting=[0] * 8)
+    learners.train(np.array([0, 1]))
+    restored = small_learners()
+    restored.load_state_dict(learners.state_dict())
+    obs = np.random.default_rng(0).uniform(-1, 1, (2, 3)).astype(np.float32)
+    th.testing.assert_close(restored.q_values(np.array([0, 1]), obs), learners.q_values(np.array([0, 1]), obs))
+    assert restored.replay.goal_keys == ["A", "B"] and restored.adam_steps[:2].tolist() == [1, 1]
+    with pytest.raises(ValueError, match="older sb3_hhp"):
+        small_learners().load_state_dict([{"policy": {}}])
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(train_freq=(1, "episode")), "counted in steps"),
+    (dict(gradient_steps=0), "gradient_steps"),
+    (dict(learning_rate=lambda progress: 1e-3), "must be a number"),
+    (dict(not_an_argument=1), "Unknown subpolicy_kwargs"),
+    (dict(replay_buffer_kwargs=dict(off_policy_lower_bound=True)), "needs n_steps > 1"),
+])
+def test_bad_subpolicy_arguments_are_refused(kwargs: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        small_learners(subpolicy_kwargs=kwargs)
