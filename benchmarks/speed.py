@@ -1,64 +1,155 @@
-"""Speed: HhP's primitive env steps per second against plain SB3 DQN (an update every step, batch 128)
-on the same observations, in one run, plus a profile of where HhP's time goes.
+"""Speed and memory of HhP with the configuration users train with (the YAML entry of the env).
 
-    python benchmarks/speed.py --env MiniGrid-DoorKey-8x8-v0 --steps 20000 --out benchmarks/results/speed.json
+Two measurements, one torch thread each:
 
-``--hhp-kwargs`` times another HhP configuration (JSON, as ``doorkey.py``), e.g. the DoorKey benchmark's.
+``ratio``: HhP (the env's ``hyperparams/hhp.yml`` entry) against flat SB3 DQN doing the same learning work per
+primitive step on the same observation (the entry's sub-goal learner: MLP, ``train_freq``, ``batch_size``), both
+timed over the same late window of a run (default steps 20,000-30,000, when sub-goals have accumulated), in one
+process; then a profiled continuation of HhP (where the time goes)::
+
+    python benchmarks/speed.py ratio --env MiniGrid-DoorKey-8x8-v0 --out benchmarks/results/speed
+
+``subgoals``: HhP with K sub-goals handed in (``discovery="none"``), K = 2 and 32, each in a fresh process: the
+cost of a primitive step (after a warm-up) and the peak resident memory::
+
+    python benchmarks/speed.py subgoals --env MiniGrid-DoorKey-8x8-v0 --out benchmarks/results/speed
+
+Results are JSON files under ``--out``; say the machine's load next to the figures (the script records the load
+average at its start and end).
 """
 
 import argparse
 import cProfile
 import json
+import os
 import pathlib
 import pstats
+import resource
+import subprocess
+import sys
 import time
+from typing import Any
 
 import gymnasium as gym
+import minigrid  # noqa: F401  (registers the MiniGrid envs)
+import numpy as np
 import torch as th
+import yaml
 from stable_baselines3 import DQN
 
 from sb3_hhp import HhP
 from sb3_hhp.goals import wrap_env
+from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry
+
+
+def entry_kwargs(env_id: str) -> tuple[str, dict[str, Any]]:
+    """The YAML entry's HhP keyword arguments (RL Zoo's own keys left out) and the entry's name."""
+    table = yaml.safe_load(default_config_path().read_text())
+    name = select_entry(table, env_id)
+    return name, {key: value for key, value in table[name].items() if key not in ZOO_KEYS}
+
+
+def timed_window(model: Any, start: int, stop: int) -> float:
+    """Train ``model`` to ``start`` steps untimed, then to ``stop`` timed: primitive steps per second over the window."""
+    model.learn(start)
+    begin, steps = time.perf_counter(), model.num_timesteps
+    model.learn(stop - model.num_timesteps, reset_num_timesteps=False)
+    return (model.num_timesteps - steps) / (time.perf_counter() - begin)
+
+
+def ratio(args: argparse.Namespace) -> dict[str, Any]:
+    entry, kwargs = entry_kwargs(args.env)
+    kwargs["oracle"] = "scripted"
+    sub = {"batch_size": 128, "train_freq": 1, "learning_starts": 500, "policy_kwargs": {"net_arch": [256, 256]},
+           **kwargs.get("subpolicy_kwargs", {})}
+    dqn = DQN("MlpPolicy", wrap_env(gym.make(args.env)), learning_starts=sub["learning_starts"], batch_size=sub["batch_size"],
+              train_freq=sub["train_freq"], gradient_steps=1, buffer_size=50_000,
+              policy_kwargs=dict(net_arch=sub["policy_kwargs"]["net_arch"]), seed=args.seed)
+    dqn_fps = timed_window(dqn, args.start, args.stop)
+    hhp = HhP("MlpPolicy", gym.make(args.env), seed=args.seed, **kwargs)
+    hhp_fps = timed_window(hhp, args.start, args.stop)
+    profiler = cProfile.Profile()
+    profiler.enable()
+    hhp.learn(args.profile_steps, reset_num_timesteps=False)
+    profiler.disable()
+    out = pathlib.Path(args.out)
+    with open(out / "speed_profile.txt", "w") as handle:
+        stats = pstats.Stats(profiler, stream=handle)
+        handle.write(f"HhP ({entry} entry) on {args.env}, {args.profile_steps} steps after step {args.stop}, "
+                     f"{len(hhp.subgoals)} sub-goals\n")
+        stats.sort_stats("cumulative").print_stats(45)
+        stats.sort_stats("tottime").print_stats(25)
+    return dict(env=args.env, entry=entry, window=[args.start, args.stop], seed=args.seed, dqn_fps=round(dqn_fps, 1),
+                hhp_fps=round(hhp_fps, 1), ratio=round(hhp_fps / dqn_fps, 3), num_subgoals=len(hhp.subgoals),
+                dqn_learning=dict(net_arch=sub["policy_kwargs"]["net_arch"], train_freq=sub["train_freq"],
+                                  batch_size=sub["batch_size"]))
+
+
+def distinct_states(env_id: str, n: int, seed: int) -> list[np.ndarray]:
+    """``n`` observations from random play, of as many distinct sub-goal keys as the env shows (then repeated)."""
+    from sb3_hhp.goals import make_goal_space
+
+    env = wrap_env(gym.make(env_id))
+    space = make_goal_space("auto", env)
+    rng = np.random.default_rng(seed)
+    by_key: dict[Any, np.ndarray] = {}
+    for episode in range(50):
+        obs, _ = env.reset(seed=seed + episode)
+        done = False
+        while not done:
+            by_key.setdefault(space.key(obs), obs)
+            obs, _, terminated, truncated, _ = env.step(int(rng.integers(env.action_space.n)))
+            done = terminated or truncated
+    states = list(by_key.values())
+    return [states[i % len(states)] for i in range(n)]
+
+
+def one_subgoal_count(args: argparse.Namespace) -> dict[str, Any]:
+    """In this process: HhP with ``args.k`` sub-goals handed in; seconds per primitive step and peak memory."""
+    _, kwargs = entry_kwargs(args.env)
+    kwargs.update(oracle="scripted", discovery="none", subgoals=distinct_states(args.env, args.k, args.seed))
+    model = HhP("MlpPolicy", gym.make(args.env), seed=args.seed, **kwargs)
+    fps = timed_window(model, args.start, args.stop)
+    return dict(k=args.k, fps=round(fps, 1), ms_per_step=round(1000 / fps, 3),
+                peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+                replay_mb=round(model.subpolicies.replay.nbytes() / 2**20, 1))
+
+
+def subgoals(args: argparse.Namespace) -> dict[str, Any]:
+    rows = []
+    for k in args.counts:
+        command = [sys.executable, __file__, "one", "--env", args.env, "--k", str(k), "--seed", str(args.seed),
+                   "--start", str(args.start), "--stop", str(args.stop)]
+        rows.append(json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout.splitlines()[-1]))
+        print(json.dumps(rows[-1]), flush=True)
+    low, high = rows[0], rows[-1]
+    return dict(env=args.env, window=[args.start, args.stop], seed=args.seed, rows=rows,
+                cost_ratio=round(high["ms_per_step"] / low["ms_per_step"], 3),
+                memory_ratio=round(high["peak_rss_mb"] / low["peak_rss_mb"], 3))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("what", choices=["ratio", "subgoals", "one"])
     parser.add_argument("--env", default="MiniGrid-DoorKey-8x8-v0")
-    parser.add_argument("--steps", type=int, default=20_000, help="primitive env steps per algorithm")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="benchmarks/results/speed.json")
-    parser.add_argument("--hhp-kwargs", default="{}", help="JSON dict of HhP keyword arguments (default: the class defaults)")
+    parser.add_argument("--start", type=int, default=20_000, help="primitive steps before the timed window")
+    parser.add_argument("--stop", type=int, default=30_000, help="primitive steps at the end of the timed window")
+    parser.add_argument("--profile-steps", type=int, default=5_000)
+    parser.add_argument("--counts", type=int, nargs="+", default=[2, 32], help="sub-goal counts (subgoals)")
+    parser.add_argument("--k", type=int, default=2, help=argparse.SUPPRESS)
+    parser.add_argument("--out", default="benchmarks/results/speed")
     args = parser.parse_args()
     th.set_num_threads(1)
-
-    # plain SB3 DQN: an update every step, batch 128, the same 256x256 MLP, the same observations
-    dqn = DQN("MlpPolicy", wrap_env(gym.make(args.env)), learning_starts=500, batch_size=128, train_freq=1,
-              gradient_steps=1, buffer_size=50_000, policy_kwargs=dict(net_arch=[256, 256]), seed=args.seed)
-    start = time.perf_counter()
-    dqn.learn(args.steps)
-    dqn_fps = args.steps / (time.perf_counter() - start)
-
-    hhp_kwargs = json.loads(args.hhp_kwargs)
-    hhp = HhP("MlpPolicy", gym.make(args.env), oracle="scripted", query_budget=100, seed=args.seed, **hhp_kwargs)
-    start = time.perf_counter()
-    hhp.learn(args.steps)
-    hhp_fps = hhp.num_timesteps / (time.perf_counter() - start)
-    num_subgoals = len(hhp.subgoals)  # at the end of the timed run
-
-    # where the time goes: a separate, profiled continuation (the profiler slows the timed run otherwise)
-    profiler = cProfile.Profile()
-    profiler.enable()
-    hhp.learn(args.steps // 4, reset_num_timesteps=False)
-    profiler.disable()
-
-    out = pathlib.Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out.with_suffix(".profile.txt"), "w") as handle:
-        pstats.Stats(profiler, stream=handle).sort_stats("cumulative").print_stats(40)
-    result = dict(env=args.env, steps=args.steps, seed=args.seed, dqn_fps=round(dqn_fps, 1),
-                  hhp_fps=round(hhp_fps, 1), ratio=round(hhp_fps / dqn_fps, 3), threads=1, hhp_kwargs=hhp_kwargs,
-                  num_subgoals=num_subgoals)
-    out.write_text(json.dumps(result, indent=2))
+    if args.what == "one":
+        print(json.dumps(one_subgoal_count(args)))
+        return
+    pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)
+    load_before = os.getloadavg()[0]
+    result = ratio(args) if args.what == "ratio" else subgoals(args)
+    result.update(threads=1, load_average_start=round(load_before, 2), load_average_end=round(os.getloadavg()[0], 2),
+                  command=" ".join(sys.argv))
+    (pathlib.Path(args.out) / f"{args.what}.json").write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))
 
 

@@ -469,7 +469,8 @@ def test_train_shared_gives_every_subpolicy_its_gradient_steps(train_shared: boo
     """Without ``train_shared`` only the acting sub-goal counts a step as a learning tick; with it, every
     sub-goal does, and all due sub-goals update together at the train frequency."""
     kwargs = {**TINY.get("subpolicy_kwargs", {}), "train_freq": 2, "learning_starts": 1, "batch_size": 4}
-    model = make_model(EMPTY, use_curiosity=False, subpolicy_kwargs=kwargs, train_shared=train_shared)
+    model = make_model(EMPTY, use_curiosity=False, subpolicy_kwargs=kwargs, train_shared=train_shared,
+                       subgoal_learner="stacked")
     model.learn(600)
     hierarchy, learners = model.hierarchy, model.subpolicies
     assert hierarchy.n_subgoals >= 2
@@ -681,10 +682,12 @@ def test_meta_controller_reads_goal_space_features_or_observations() -> None:
 @pytest.mark.parametrize("budget, first_steps", [(10, 1_000), (2_000, 1_000)])
 def test_resume_with_a_preference_database(tmp_path, budget: int, first_steps: int) -> None:
     """Budget 10 is spent before the save (the resumed run must ask nothing more); budget 2000 is not
-    (the resumed run asks more, counting what was asked before the save). t_qry = 0: every tuple qualifies."""
+    (the resumed run asks more, counting what was asked before the save). t_qry = 0: every tuple qualifies, and
+    without the sub-goal mask every state has a second choice to ask about."""
     db = str(tmp_path / "prefs.sqlite")
     predictor_kwargs = dict(hidden_dim=64, buffer_size=budget + 100)  # room to see a label added twice
-    model = make_model(DOORKEY, preference_db=db, query_budget=budget, predictor_kwargs=predictor_kwargs)
+    model = make_model(DOORKEY, preference_db=db, query_budget=budget, predictor_kwargs=predictor_kwargs,
+                       mask_subgoals=False)
     model.learn(first_steps)
     used_before = model.query_selector.used
     assert 0 < used_before <= budget

@@ -31,7 +31,7 @@ from sb3_hhp.dqn.dqn import DoubleDQN
 from sb3_hhp.goals import GoalSpace, make_goal_space, wrap_env
 from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, MlpPolicy, MultiInputPolicy
 from sb3_hhp.hierarchy.env import HierarchicalEnv
-from sb3_hhp.hierarchy.learners import StackedDQN
+from sb3_hhp.hierarchy.learners import SharedHeadsDQN, StackedDQN
 from sb3_hhp.hierarchy.subpolicies import PerGoalLearners, SubpolicySet
 from sb3_hhp.oracles.base import Oracle
 from sb3_hhp.oracles.registry import make_oracle
@@ -41,6 +41,9 @@ from sb3_hhp.preferences.rewards import PreferenceReturnNormalizer, meta_reward
 from sb3_hhp.preferences.store import PreferenceStore
 
 SelfHhP = TypeVar("SelfHhP", bound="HhP")
+
+#: the learners of discrete-action sub-goals (``subgoal_learner``)
+SUBGOAL_LEARNERS = {"heads": SharedHeadsDQN, "stacked": StackedDQN}
 
 #: the zip member of a saved model that holds the components beyond the meta-controller
 COMPONENTS_FILE = "hhp_components.pt"  # not .pth: SB3 loads every .pth member as weights only
@@ -112,6 +115,10 @@ class HhP(DoubleDQN):
     :param share_experience: every transition also trains (off-policy) the other subpolicies, relabelled with their rewards
     :param train_shared: with ``share_experience``, every subpolicy takes its gradient steps on every primitive
         step (at its own ``train_freq``), not only while it acts (see the README's Design)
+    :param subgoal_learner: discrete actions: "heads" (default: one network, a shared trunk and one head per sub-goal,
+        one relabelled batch for all; the cost of a step barely grows with the number of sub-goals) or "stacked" (a
+        network of its own per sub-goal, all updated in one call; cost and memory grow with the number of sub-goals);
+        see the README's Design
     :param center_bonus: centre the preference bonus over the sub-goals of each state: True or "mean" subtracts
         their mean, "max" the best choosable one's score, so that no choice is paid (see the README's Design)
     :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
@@ -164,6 +171,7 @@ class HhP(DoubleDQN):
         n_opt: int = 4,
         share_experience: bool = True,
         train_shared: bool = False,
+        subgoal_learner: str = "heads",
         center_bonus: Union[bool, str] = True,
         mask_subgoals: bool = True,
         record_images: Optional[bool] = None,
@@ -202,6 +210,8 @@ class HhP(DoubleDQN):
             raise ValueError(f"n_opt must be >= 1, got {n_opt}")
         if train_shared and not share_experience:
             raise ValueError("train_shared=True trains subpolicies on shared experience: it needs share_experience=True")
+        if subgoal_learner not in SUBGOAL_LEARNERS:
+            raise ValueError(f"subgoal_learner must be one of {sorted(SUBGOAL_LEARNERS)}, got {subgoal_learner!r}")
         if predictor_input not in ("auto", "features", "observation"):
             raise ValueError(f"predictor_input must be 'auto', 'features' or 'observation', got {predictor_input!r}")
         if meta_input not in ("auto", "features", "observation"):
@@ -246,6 +256,7 @@ class HhP(DoubleDQN):
         self.mask_subgoals = mask_subgoals
         self.share_experience = share_experience
         self.train_shared = train_shared
+        self.subgoal_learner = subgoal_learner
         self.record_images = record_images
         self.subpolicy_policy = policy if isinstance(policy, str) else "MlpPolicy"
 
@@ -333,7 +344,7 @@ class HhP(DoubleDQN):
         self.return_normalizer = PreferenceReturnNormalizer(gamma=0.99, rollout_length=64)
         alpha = self.alpha if self.use_curiosity else 0.0
         if isinstance(self.primitive_action_space, spaces.Discrete):
-            self.subpolicies = StackedDQN(
+            self.subpolicies = SUBGOAL_LEARNERS[getattr(self, "subgoal_learner", "stacked")](
                 obs_space, self.primitive_action_space, self.goal_space.achieved, policy=self.subpolicy_policy,
                 subpolicy_kwargs=self.subpolicy_kwargs, alpha=alpha, exploration_steps=self.subpolicy_exploration_steps,
                 share_experience=self.share_experience, train_shared=self.train_shared, device=device, seed=self.seed,
@@ -358,6 +369,7 @@ class HhP(DoubleDQN):
             self.consumed_query_ids: set[str] = set()
         self.pending_queries: dict[str, Any] = {}
         self._mask_cache: dict[Any, np.ndarray] = {}  # (state key, present) -> choosable sub-goals, emptied when G changes
+        self._present_cache: dict[bytes, tuple] = {}  # observation bytes -> (key, present)
         self.recent_choices: deque = deque(maxlen=1_000)
         self.last_predictor_stats: dict[str, float] = {}
         self.last_confidences: np.ndarray = np.zeros(0)
@@ -420,7 +432,13 @@ class HhP(DoubleDQN):
         goal_keys = [goal.key for goal in self.subgoals]
         rows = np.empty((len(batch), len(valid)), dtype=bool)
         for i, obs in enumerate(batch):
-            key, present = self.goal_space.key(obs), self.goal_space.present(obs)
+            raw = obs.tobytes()
+            described = self._present_cache.get(raw)
+            if described is None:  # key and present of a state, reused whenever the same observation recurs
+                if len(self._present_cache) >= 100_000:
+                    self._present_cache.clear()
+                described = self._present_cache[raw] = (self.goal_space.key(obs), self.goal_space.present(obs))
+            key, present = described
             row = self._mask_cache.get((key, present))
             if row is None:
                 row = valid.copy()
@@ -698,7 +716,7 @@ class HhP(DoubleDQN):
             *super()._excluded_save_params(),
             "hierarchy", "rnd", "predictor", "query_selector", "return_normalizer", "subpolicies", "discovery",
             "store", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
-            "last_confidences", "consumed_query_ids", "_loaded_subgoals", "initial_subgoals", "_mask_cache",
+            "last_confidences", "consumed_query_ids", "_loaded_subgoals", "initial_subgoals", "_mask_cache", "_present_cache",
         ]
 
     def components_state(self) -> dict[str, Any]:

@@ -22,7 +22,7 @@ from stable_baselines3.dqn.policies import CnnPolicy, DQNPolicy, MlpPolicy
 from torch.func import functional_call, vmap
 from torch.nn import functional as F
 
-from sb3_hhp.hierarchy.replay import SharedReplay
+from sb3_hhp.hierarchy.replay import GoalTrees, SharedReplay
 
 #: subpolicy keyword arguments the stacked learner reads (SB3 DQN's names), and those it accepts and ignores
 _USED = {
@@ -30,6 +30,7 @@ _USED = {
     "target_update_interval", "exploration_initial_eps", "exploration_final_eps", "n_steps", "replay_buffer_kwargs",
     "max_grad_norm", "double_q", "prioritized_replay_alpha", "prioritized_replay_beta", "prioritized_replay_eps",
 }
+_TINY = 1e-30  # below this, Adam's moments are set to 0 (a subnormal float32 starts at 1.2e-38)
 _IGNORED = {"exploration_fraction", "optimize_memory_usage", "tau", "prioritized_replay"}
 
 
@@ -345,6 +346,9 @@ class StackedDQN:
         correction2 = (1 - betas[1] ** steps).float().unsqueeze(1)
         m = self.exp_avg[index].mul_(betas[0]).add_(grad, alpha=1 - betas[0])
         v = self.exp_avg_sq[index].mul_(betas[1]).addcmul_(grad, grad, value=1 - betas[1])
+        # moments that decay towards 0 become subnormal floats, which CPUs multiply ~30x slower: flush them to 0
+        m.masked_fill_(m.abs() < _TINY, 0.0)
+        v.masked_fill_(v < _TINY, 0.0)
         self.exp_avg[index] = m
         self.exp_avg_sq[index] = v
         self.params[index] = self.params[index] - self.lr * (m / correction1) / ((v / correction2).sqrt() + eps)
@@ -391,3 +395,269 @@ class StackedDQN:
         self.n_updates = np.array(state["n_updates"], dtype=np.int64)
         self.recent = [deque(r, maxlen=100) for r in state["recent"]]
         self.successes, self.attempts = list(state["successes"]), list(state["attempts"])
+
+
+class GoalHeadsQNetwork(th.nn.Module):
+    """``Q(s, g, a)`` for every sub-goal ``g``: SB3's features extractor and MLP trunk, shared, then one linear
+    head per sub-goal (as h-DQN's controller is one network for every goal). Heads are stored stacked,
+    ``capacity`` of them; :meth:`grow` makes room for more.
+
+    :param features_extractor: SB3's features extractor (FlattenExtractor, NatureCNN, ...)
+    :param net_arch: hidden layer sizes of the trunk
+    :param activation_fn: the trunk's activation
+    :param n_actions: primitive actions
+    :param capacity: heads allocated
+    :param observation_space: the space the network reads (for SB3's preprocessing)
+    :param normalize_images: divide image observations by 255
+    """
+
+    def __init__(self, features_extractor: th.nn.Module, net_arch: list[int], activation_fn: type[th.nn.Module],
+                 n_actions: int, capacity: int, observation_space: spaces.Space, normalize_images: bool = True) -> None:
+        super().__init__()
+        from stable_baselines3.common.torch_layers import create_mlp
+
+        self.features_extractor = features_extractor
+        self.trunk = th.nn.Sequential(*create_mlp(features_extractor.features_dim, -1, list(net_arch), activation_fn))
+        self.hidden_dim = net_arch[-1] if net_arch else features_extractor.features_dim
+        self.n_actions = n_actions
+        self.observation_space = observation_space
+        self.normalize_images = normalize_images
+        self.head_weight = th.nn.Parameter(th.zeros(capacity, n_actions, self.hidden_dim))
+        self.head_bias = th.nn.Parameter(th.zeros(capacity, n_actions))
+
+    @property
+    def capacity(self) -> int:
+        return self.head_weight.shape[0]
+
+    def init_head(self, goal: int, generator: Optional[th.Generator] = None) -> None:
+        """A fresh head for sub-goal ``goal`` (nn.Linear's default initialisation)."""
+        bound = 1.0 / np.sqrt(self.hidden_dim)
+        with th.no_grad():
+            self.head_weight[goal] = (th.rand(self.head_weight.shape[1:], generator=generator) * 2 - 1) * bound
+            self.head_bias[goal] = (th.rand(self.head_bias.shape[1:], generator=generator) * 2 - 1) * bound
+
+    def grow(self, capacity: int) -> None:
+        with th.no_grad():
+            weight = th.zeros(capacity, *self.head_weight.shape[1:], device=self.head_weight.device)
+            bias = th.zeros(capacity, self.n_actions, device=self.head_bias.device)
+            weight[: self.capacity], bias[: self.capacity] = self.head_weight, self.head_bias
+        self.head_weight, self.head_bias = th.nn.Parameter(weight), th.nn.Parameter(bias)
+
+    def features(self, obs: th.Tensor) -> th.Tensor:
+        obs = preprocess_obs(obs, self.observation_space, normalize_images=self.normalize_images)
+        return self.trunk(self.features_extractor(obs))
+
+    def forward(self, obs: th.Tensor, goals: Optional[th.Tensor] = None) -> th.Tensor:
+        """Q-values ``(N, capacity, A)`` of every head, or ``(N, A)`` of head ``goals[i]`` for ``obs[i]``."""
+        features = self.features(obs)
+        if goals is None:
+            return th.einsum("nh,cah->nca", features, self.head_weight) + self.head_bias
+        return th.einsum("nh,nah->na", features, self.head_weight[goals]) + self.head_bias[goals]
+
+
+class SharedHeadsDQN(StackedDQN):
+    """Every sub-goal's Double DQN learner as one head of a :class:`GoalHeadsQNetwork`, over one shared replay.
+
+    One update draws one prioritized batch of primitive transitions and relabels it for every sub-goal (eq. 5, 6
+    and each sub-goal's n-step return, when drawn): the trunk runs once on the batch whatever the number of
+    sub-goals K, so the cost of a primitive step barely grows with K. A transition's priority is its largest
+    absolute TD error over the sub-goals. ``train_freq``, ``gradient_steps`` and ``target_update_interval``
+    count primitive steps (of all envs); ``train_shared`` has no effect (every head learns at every update).
+    Arguments as :class:`StackedDQN`.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.trees = GoalTrees(1, self.replay.capacity * self.replay.n_envs)
+        self.replay.trees = _SharedTree(self.trees)  # new transitions get the largest priority of the one tree
+        policy = self._make_policy()
+        policy_kwargs = {k: v for k, v in dict(self.kwargs["policy_kwargs"] or {}).items() if k != "optimizer_kwargs"}
+        net_arch = policy_kwargs.get("net_arch", [64, 64])
+        self.network = GoalHeadsQNetwork(policy.q_net.features_extractor, net_arch, policy.q_net.activation_fn,
+                                         int(self.action_space.n), 4, policy.q_net.observation_space,
+                                         policy.q_net.normalize_images).to(self.device)
+        self.target_network = GoalHeadsQNetwork(policy.q_net_target.features_extractor, net_arch,
+                                                policy.q_net.activation_fn, int(self.action_space.n), 4,
+                                                policy.q_net.observation_space, policy.q_net.normalize_images).to(self.device)
+        self.target_network.load_state_dict(self.network.state_dict())
+        self.optimizer = th.optim.Adam(self.network.parameters(), lr=self.lr)
+        self.n_train_calls = 0
+
+    def add(self, goal_key: Hashable) -> int:
+        goal = len(self)
+        if not hasattr(self, "network"):  # StackedDQN's constructor adds nothing; nothing to do before the network
+            raise RuntimeError("add() before the network exists")
+        if goal >= self.network.capacity:
+            self._grow_heads(2 * self.network.capacity)
+        generator = th.Generator().manual_seed((self.seed or 0) * 7919 + goal) if self.seed is not None else None
+        self.network.init_head(goal, generator)
+        with th.no_grad():
+            self.target_network.head_weight[goal] = self.network.head_weight[goal]
+            self.target_network.head_bias[goal] = self.network.head_bias[goal]
+        self.own_steps = np.append(self.own_steps, 0)
+        self.ticks = np.append(self.ticks, 0)
+        self.n_updates = np.append(self.n_updates, 0)
+        self.recent.append(deque(maxlen=100))
+        self.successes.append(0)
+        self.attempts.append(0)
+        self.replay.add_goal(goal_key)
+        return goal
+
+    def _grow_heads(self, capacity: int) -> None:
+        """More heads; Adam's moments of the old heads are kept, the new heads' start at zero."""
+        old = {name: param for name, param in self.network.named_parameters()}
+        old_state = {name: self.optimizer.state.get(param, {}) for name, param in old.items()}
+        self.network.grow(capacity)
+        self.target_network.grow(capacity)
+        self.optimizer = th.optim.Adam(self.network.parameters(), lr=self.lr)
+        for name, param in self.network.named_parameters():
+            state = old_state[name]
+            if not state:
+                continue
+            if name.startswith("head_"):
+                state = dict(state)
+                for moment in ("exp_avg", "exp_avg_sq"):
+                    grown = th.zeros_like(param)
+                    grown[: state[moment].shape[0]] = state[moment]
+                    state[moment] = grown
+            self.optimizer.state[param] = state
+
+    def q_values(self, goals: np.ndarray, obs: np.ndarray) -> th.Tensor:
+        with th.no_grad():
+            return self.network(self._tensor(np.asarray(obs)), th.as_tensor(np.asarray(goals, dtype=np.int64), device=self.device))
+
+    def observe(self, obs: np.ndarray, actions: np.ndarray, next_obs: np.ndarray, keys: list, terminated: np.ndarray,
+                truncated: np.ndarray, gave_up: np.ndarray, acting: np.ndarray, intrinsic: np.ndarray) -> None:
+        replay = self.replay
+        key_ids = np.array([replay.key_id(key) for key in keys], dtype=np.int32)
+        acting = np.asarray(acting, dtype=np.int64)
+        replay.add(obs, actions, next_obs, key_ids, terminated, truncated, gave_up, acting, intrinsic)
+        np.add.at(self.own_steps, acting[acting >= 0], 1)
+        before = int(self.ticks[0]) if len(self) else 0
+        self.ticks += len(acting)  # every head counts every primitive step
+        now = before + len(acting)
+        rounds = (now // self.train_freq - before // self.train_freq) * self.gradient_steps
+        ready = replay.size() * replay.n_envs >= max(self.learning_starts, self.batch_size)
+        if len(self) and ready:
+            for _ in range(rounds):
+                self.train(np.arange(len(self)))
+        if now // self.target_update_interval > before // self.target_update_interval:
+            self.target_network.load_state_dict(self.network.state_dict())
+
+    def train(self, goals: np.ndarray) -> float:
+        """One gradient step of the network for every sub-goal of ``goals`` on one shared, relabelled batch."""
+        replay, n_steps, batch_size = self.replay, self.replay.n_steps, self.batch_size
+        goals = np.asarray(goals, dtype=np.int64)
+        leaves, probabilities = self.trees.sample(np.array([0]), batch_size, replay._rng)
+        leaves, probabilities = leaves[0], probabilities[0]
+        weights = (replay.size() * replay.n_envs * np.maximum(probabilities, 1e-12)) ** (-replay.priority_beta)
+        weights = (weights / weights.max()).astype(np.float32)
+        rows, cols = np.divmod(leaves, replay.n_envs)
+        grid = (len(goals), batch_size)
+        row_grid, col_grid = np.broadcast_to(rows, grid), np.broadcast_to(cols, grid)
+        goal_grid = np.broadcast_to(goals[:, None], grid)
+        returns, last, discounts, dones = replay._n_step(row_grid, col_grid, goal_grid, own=True)
+        closings = [((last - rows) % replay.capacity, returns, discounts, dones)]
+        if replay.lower_bound:
+            b_returns, b_last, b_discounts, b_dones = replay._n_step(row_grid, col_grid, goal_grid, own=False)
+            closings.append(((b_last - rows) % replay.capacity, b_returns, b_discounts, b_dones))
+        # the states closing the returns lie among the n transitions after each drawn one: the network runs once
+        # on the distinct ones, whatever the number of sub-goals
+        pairs = np.concatenate([np.arange(batch_size) * n_steps + offset for offset, *_ in closings], axis=0)
+        distinct, inverse = np.unique(pairs, return_inverse=True)
+        inverse = inverse.reshape(len(closings), *grid)
+        draw, offset = np.divmod(distinct, n_steps)
+        next_obs = self._tensor(replay.next_observations[(rows[draw] + offset) % replay.capacity, cols[draw]])
+        as_t = lambda x: th.as_tensor(x, device=self.device)  # noqa: E731
+        heads = as_t(goals)[:, None]
+        with th.no_grad():
+            next_q_target = self.target_network(next_obs)  # (U, capacity, A)
+            next_q_online = self.network(next_obs) if self.double_q else next_q_target
+            y = None
+            for k, (_, k_returns, k_discounts, k_dones) in enumerate(closings):
+                index = as_t(inverse[k])
+                online, target = next_q_online[index, heads], next_q_target[index, heads]  # (T, B, A)
+                next_q = target.gather(-1, online.argmax(-1, keepdim=True))[..., 0]
+                y_k = as_t(k_returns) + as_t(k_discounts) * (1 - as_t(k_dones)) * next_q
+                y = y_k if y is None else th.maximum(y, y_k)  # the behaviour's return is a lower bound
+        q_all = self.network(self._tensor(replay.observations[rows, cols]))  # (B, capacity, A)
+        actions = as_t(replay.actions[rows, cols].reshape(batch_size).astype(np.int64))
+        q = q_all[:, as_t(goals), :].gather(-1, actions[:, None, None].expand(-1, len(goals), 1))[..., 0].T  # (T, B)
+        mask = as_t(np.ones(grid, dtype=np.float32) if replay.share_experience
+                    else (replay.acting[rows, cols][None, :] == goals[:, None]).astype(np.float32))
+        elementwise = F.smooth_l1_loss(q, y, reduction="none") * as_t(weights)[None, :] * mask
+        loss = (elementwise.sum(dim=1) / mask.sum(dim=1).clamp(min=1)).sum()  # each sub-goal's own mean, summed
+        self.optimizer.zero_grad()
+        loss.backward()
+        th.nn.utils.clip_grad_norm_(self.network.parameters(), self.max_grad_norm)
+        self.optimizer.step()
+        td_errors = ((y - q).detach().abs() * mask).amax(dim=0).cpu().numpy()
+        self.trees.update(np.array([0]), leaves[None, :], (td_errors[None, :] + replay.priority_eps) ** replay.priority_alpha)
+        self.n_updates[goals] += 1
+        self.n_train_calls += 1
+        self.last_loss = float(loss.detach()) / max(1, len(goals))
+        return self.last_loss
+
+    def policy(self, goal: int) -> DQNPolicy:
+        """Sub-goal ``goal``'s learner as an SB3 ``DQNPolicy``: the shared trunk and its own head as the last layer."""
+        policy = self._make_policy()
+        for q_net, network in ((policy.q_net, self.network), (policy.q_net_target, self.target_network)):
+            state = {f"features_extractor.{k}": v for k, v in network.features_extractor.state_dict().items()}
+            state.update({f"q_net.{k}": v for k, v in network.trunk.state_dict().items()})
+            state[f"q_net.{len(network.trunk)}.weight"] = network.head_weight[goal].detach().clone()
+            state[f"q_net.{len(network.trunk)}.bias"] = network.head_bias[goal].detach().clone()
+            q_net.load_state_dict(state)
+        return policy
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "format": "sb3_hhp.SharedHeadsDQN", "capacity": self.network.capacity,
+            "network": self.network.state_dict(), "target_network": self.target_network.state_dict(),
+            "optimizer": self.optimizer.state_dict(), "own_steps": self.own_steps.tolist(), "ticks": self.ticks.tolist(),
+            "n_updates": self.n_updates.tolist(), "recent": [list(r) for r in self.recent],
+            "successes": list(self.successes), "attempts": list(self.attempts), "goal_keys": list(self.replay.goal_keys),
+        }
+
+    def load_state_dict(self, state: Any) -> None:
+        if not isinstance(state, dict) or state.get("format") != "sb3_hhp.SharedHeadsDQN":
+            raise ValueError("These sub-goal learners were saved by an older sb3_hhp (one SB3 model per sub-goal) or with "
+                             "another subgoal learner, which this version cannot load: train the model again")
+        for key in state["goal_keys"]:
+            self.add(key)
+        if self.network.capacity < state["capacity"]:
+            self._grow_heads(state["capacity"])
+        try:
+            self.network.load_state_dict(state["network"])
+            self.target_network.load_state_dict(state["target_network"])
+        except RuntimeError as error:
+            raise ValueError("The saved sub-goal learners have another network than subpolicy_kwargs builds: load the "
+                             f"model with the subpolicy_kwargs it was trained with ({error})") from error
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.own_steps = np.array(state["own_steps"], dtype=np.int64)
+        self.ticks = np.array(state["ticks"], dtype=np.int64)
+        self.n_updates = np.array(state["n_updates"], dtype=np.int64)
+        self.recent = [deque(r, maxlen=100) for r in state["recent"]]
+        self.successes, self.attempts = list(state["successes"]), list(state["attempts"])
+
+
+class _SharedTree:
+    """The replay's view of :class:`SharedHeadsDQN`'s one tree: every stored transition in it, whatever the sub-goals."""
+
+    def __init__(self, trees: GoalTrees) -> None:
+        self.trees = trees
+
+    @property
+    def n_trees(self) -> int:
+        return 1
+
+    def grow(self, n_trees: int) -> None:
+        pass
+
+    def fill(self, tree: int, leaves: np.ndarray, priority: float = 1.0) -> None:
+        pass  # a new sub-goal reads the same tree
+
+    def add(self, leaves: np.ndarray, trees: np.ndarray) -> None:
+        self.trees.add(leaves, np.array([True]))
+
+    def total(self, trees: np.ndarray) -> np.ndarray:
+        return np.repeat(self.trees.total(np.array([0])), len(trees))

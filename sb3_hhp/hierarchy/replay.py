@@ -246,12 +246,11 @@ class SharedReplay:
         self.intrinsic[pos] = intrinsic
         leaves = pos * self.n_envs + np.arange(self.n_envs)
         n_goals = self.n_goals
-        if n_goals:
-            if self.share_experience:
-                learns = np.ones(n_goals, dtype=bool)
-            else:
-                learns = (np.arange(n_goals)[:, None] == np.asarray(acting)[None, :]).any(axis=1)
-            self.trees.add(leaves, np.concatenate([learns, np.zeros(self.trees.n_trees - n_goals, dtype=bool)]))
+        if self.share_experience:
+            learns = np.ones(n_goals, dtype=bool)
+        else:
+            learns = (np.arange(n_goals)[:, None] == np.asarray(acting)[None, :]).any(axis=1)
+        self.trees.add(leaves, np.concatenate([learns, np.zeros(max(0, self.trees.n_trees - n_goals), dtype=bool)]))
         self.pos = (pos + 1) % self.capacity
         self.full = self.full or self.pos == 0
 

@@ -347,6 +347,20 @@ class PreferencePredictor(OwnRandomState):
         states_t, goals_t, n = self._pairs(states, goals)
         if self.dropout == 0.0 or self.n_masks < 2 or n == 0:
             return np.zeros(n, dtype=np.float32)
+        if n > 1:  # equal (state, goal) inputs have one spread: the masks run once on each distinct input
+            pairs = torch.cat([states_t.expand(n, *states_t.shape[1:]).reshape(n, -1),
+                               goals_t.expand(n, *goals_t.shape[1:]).reshape(n, -1)], dim=1)
+            distinct, inverse = torch.unique(pairs, dim=0, return_inverse=True)
+            if len(distinct) < n:
+                first = torch.full((len(distinct),), n, dtype=torch.long, device=inverse.device)
+                first = first.scatter_reduce(0, inverse, torch.arange(n, device=inverse.device), reduce="amin")
+                s_first = states_t if states_t.shape[0] == 1 else states_t[first]
+                g_first = goals_t if goals_t.shape[0] == 1 else goals_t[first]
+                return self._spread(s_first, g_first, len(distinct))[inverse.cpu().numpy()]
+        return self._spread(states_t, goals_t, n)
+
+    def _spread(self, states_t: torch.Tensor, goals_t: torch.Tensor, n: int) -> np.ndarray:
+        """Eq. 4 on tensors of ``n`` inputs (or one state / goal broadcast)."""
         n_rows = n * self.n_masks
         predictions = torch.empty(n_rows, device=self.device)
         self.network.train()
