@@ -112,7 +112,7 @@ def test_goal_trees_draw_in_proportion_to_each_trees_priorities() -> None:
 
 def small_learners(**kwargs) -> StackedDQN:
     sub_kwargs = dict(policy_kwargs=dict(net_arch=[8]), batch_size=4, learning_starts=4, train_freq=2, gamma=0.9,
-                      target_update_interval=5, learning_rate=0.01, max_grad_norm=0.5)
+                      target_update_interval=5, learning_rate=0.01, max_grad_norm=0.5, n_steps=1)
     sub_kwargs.update(kwargs.pop("subpolicy_kwargs", {}))
     return StackedDQN(spaces.Box(-1, 1, (3,), np.float32), ACTIONS, equal_keys, subpolicy_kwargs=sub_kwargs, seed=0, **kwargs)
 
@@ -210,7 +210,7 @@ def test_state_dict_round_trip_and_older_saves_are_refused() -> None:
     (dict(gradient_steps=0), "gradient_steps"),
     (dict(learning_rate=lambda progress: 1e-3), "must be a number"),
     (dict(not_an_argument=1), "Unknown subpolicy_kwargs"),
-    (dict(replay_buffer_kwargs=dict(off_policy_lower_bound=True)), "needs n_steps > 1"),
+    (dict(n_steps=1, replay_buffer_kwargs=dict(off_policy_lower_bound=True)), "needs n_steps > 1"),
 ])
 def test_bad_subpolicy_arguments_are_refused(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):

@@ -184,6 +184,22 @@ def test_confidence_is_eq4_over_batched_masks(spread):
     assert predictor.network.calls == [20, 20, 20, 3]
 
 
+def test_confidence_runs_the_masks_once_per_distinct_input():
+    """Equal (state, goal) inputs share one spread: the masks run on each distinct input once (an episode revisits
+    the same described state with the same sub-goal many times), and each copy gets the spread of its input."""
+    n_masks = 5
+    noise = np.random.default_rng(0).normal(size=2 * n_masks)
+    predictor = make_predictor(n_masks=n_masks, mask_batch_size=100)
+    predictor.network = QueueNetwork(noise)
+    a, b = np.zeros(4, np.float32), np.ones(4, np.float32)
+    goal = np.full(4, 2.0, np.float32)
+    confidence = predictor.confidence(np.stack([a, b, a, a]), np.stack([goal] * 4))
+    assert predictor.network.calls == [2 * n_masks]  # 2 distinct inputs, not 4
+    p_dj = noise.reshape(2, n_masks)  # rows of input a (first seen) then of input b
+    expected = np.sqrt(((p_dj - p_dj.mean(axis=1, keepdims=True)) ** 2).mean(axis=1))
+    np.testing.assert_allclose(confidence, expected[[0, 1, 0, 0]], rtol=1e-4)
+
+
 def test_confidence_matches_explicit_stochastic_passes():
     rng = np.random.default_rng(0)
     predictor = make_predictor(dropout=0.2, n_masks=2000, spread="var", hidden_dim=64)

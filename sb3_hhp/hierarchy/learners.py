@@ -34,14 +34,31 @@ _TINY = 1e-30  # below this, Adam's moments are set to 0 (a subnormal float32 st
 _IGNORED = {"exploration_fraction", "optimize_memory_usage", "tau", "prioritized_replay"}
 
 
+#: the paper's sub-goal learner (section 5.1): Adam lr 1e-3, batch 128, 256x256 units, an update every step,
+#: replay of 50K, one-step targets; a target network every 250 of a sub-goal's learning ticks (2,000 in the paper:
+#: a sub-goal lives a few thousand steps). ``HhP(..., subpolicy_kwargs=PAPER_SUBPOLICY_KWARGS)`` selects it.
+PAPER_SUBPOLICY_KWARGS: dict[str, Any] = dict(
+    learning_rate=1e-3, buffer_size=50_000, learning_starts=500, batch_size=128, gamma=0.99, train_freq=1,
+    gradient_steps=1, policy_kwargs=dict(net_arch=[256, 256]), target_update_interval=250, n_steps=1,
+    replay_buffer_kwargs=dict(),
+)
+
+#: the default sub-goal learner, measured to learn MiniGrid (DoorKey-5x5 to 8x8; README, Design): 64x64 units,
+#: an update of batch 32 every 4 primitive steps, 8-step returns with gamma 0.9 and the behaviour's return as a
+#: lower bound, Adam lr 1e-4, a target network every 10,000 steps
+DEFAULT_SUBPOLICY_KWARGS: dict[str, Any] = dict(
+    learning_rate=1e-4, buffer_size=50_000, learning_starts=100, batch_size=32, gamma=0.9, train_freq=4,
+    gradient_steps=1, policy_kwargs=dict(net_arch=[64, 64]), target_update_interval=10_000, n_steps=8,
+    replay_buffer_kwargs=dict(off_policy_lower_bound=True),
+)
+
+
 def default_subpolicy_kwargs() -> dict[str, Any]:
-    """The paper's defaults (section 5.1): Adam lr 1e-3, batch 128, 256x256 units, replay of 50K; a target
-    network every 250 of a sub-goal's learning ticks (2,000 in the paper: a sub-goal lives a few thousand steps)."""
+    """The defaults of every sub-goal learner's keyword argument (:data:`DEFAULT_SUBPOLICY_KWARGS` over the rest)."""
     return dict(
-        learning_rate=1e-3, buffer_size=50_000, learning_starts=500, batch_size=128, gamma=0.99, train_freq=1,
-        gradient_steps=1, policy_kwargs=dict(net_arch=[256, 256]), target_update_interval=250,
-        exploration_initial_eps=1.0, exploration_final_eps=0.05, n_steps=1, max_grad_norm=10.0, double_q=True,
+        exploration_initial_eps=1.0, exploration_final_eps=0.05, max_grad_norm=10.0, double_q=True,
         prioritized_replay_alpha=0.6, prioritized_replay_beta=0.4, prioritized_replay_eps=1e-6,
+        **{key: (dict(value) if isinstance(value, dict) else value) for key, value in DEFAULT_SUBPOLICY_KWARGS.items()},
     )
 
 
@@ -121,6 +138,8 @@ class StackedDQN:
         self.device = th.device(device)
         self.seed = seed
         replay_kwargs = dict(kw.get("replay_buffer_kwargs") or {})
+        if int(kw["n_steps"]) < 2 and "replay_buffer_kwargs" not in (subpolicy_kwargs or {}):
+            replay_kwargs.pop("off_policy_lower_bound", None)  # the default lower bound is an n-step return: off for one-step
         lower_bound = bool(replay_kwargs.pop("off_policy_lower_bound", False))
         if replay_kwargs:
             raise ValueError(f"Unknown subpolicy replay_buffer_kwargs {sorted(replay_kwargs)}: only off_policy_lower_bound")
