@@ -161,3 +161,8 @@ def test_hhp_trains_ddpg_subpolicies_on_fetch_reach_and_round_trips(tmp_path) ->
 )
 def test_episode_success_is_the_envs_own_where_it_reports_one(info, terminated, extrinsic_return, success) -> None:
     assert _is_success(info, terminated, extrinsic_return) is success
+
+
+def test_cnn_policy_on_flat_observations_names_the_policy_to_use() -> None:
+    with pytest.raises(ValueError, match=r"use HhP\('MlpPolicy', env\)"):
+        HhP("CnnPolicy", gym.make(REACH))

@@ -793,3 +793,18 @@ def test_meta_learning_starts_within_the_first_episode() -> None:
     model.learn(600)
     assert model.num_timesteps >= 600
     assert model.replay_buffer.size() > 0
+
+
+def test_cnn_policy_reads_minigrid_grids_with_a_small_cnn() -> None:
+    """SB3's NatureCNN refuses MiniGrid's symbolic grids; CnnPolicy gives the meta-controller and the sub-goal
+    learners GridCNN instead, and trains end to end."""
+    from sb3_hhp.hhp.policies import GridCNN
+
+    model = HhP("CnnPolicy", gym.make(DOORKEY), **{**TINY, "seed": 0, "query_budget": 5})
+    assert isinstance(model.q_net.features_extractor, GridCNN)
+    assert isinstance(model.subpolicies.network.features_extractor, GridCNN)
+    model.learn(400)
+    assert model.num_timesteps >= 400 and len(model.subgoals) >= 1
+    obs = observations()
+    features = GridCNN(model.primitive_observation_space)(th.as_tensor(obs))
+    assert features.shape == (len(obs), 128)

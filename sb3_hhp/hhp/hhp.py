@@ -21,6 +21,7 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
 from stable_baselines3.common.utils import get_device, should_collect_more_steps
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecTransposeImage
@@ -29,7 +30,7 @@ from sb3_hhp.curiosity.rnd import RND
 from sb3_hhp.discovery.csd import SubgoalDiscovery
 from sb3_hhp.dqn.dqn import DoubleDQN
 from sb3_hhp.goals import GoalSpace, make_goal_space, wrap_env
-from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, MlpPolicy, MultiInputPolicy
+from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, GridCNN, MlpPolicy, MultiInputPolicy
 from sb3_hhp.hierarchy.env import HierarchicalEnv
 from sb3_hhp.hierarchy.learners import SharedHeadsDQN, StackedDQN
 from sb3_hhp.hierarchy.subpolicies import PerGoalLearners, SubpolicySet
@@ -272,6 +273,8 @@ class HhP(DoubleDQN):
                 alpha=alpha if use_curiosity else 0.0, max_subgoal_steps=max_subgoal_steps, capacity=subgoal_capacity,
             )
             policy_kwargs = self._meta_policy_kwargs(policy_kwargs)
+            if policy == "CnnPolicy":
+                policy_kwargs = self._cnn_policy_kwargs(policy_kwargs)
         super().__init__(
             policy,
             self.hierarchy,  # type: ignore[arg-type]
@@ -323,6 +326,23 @@ class HhP(DoubleDQN):
         if reads_features and "features_extractor_class" not in policy_kwargs:
             policy_kwargs.update(features_extractor_class=GoalSpaceFeatures, features_extractor_kwargs=dict(goal_space=self.goal_space))
         return policy_kwargs
+
+    def _cnn_policy_kwargs(self, policy_kwargs: dict[str, Any]) -> dict[str, Any]:
+        """``CnnPolicy`` on a symbolic grid (MiniGrid) reads it with :class:`~sb3_hhp.hhp.policies.GridCNN`, for the
+        meta-controller and the sub-goal learners alike; on a space no CNN can read, a clear error."""
+        space = self.primitive_observation_space
+        if is_image_space(space, check_channels=False):
+            return policy_kwargs
+        if len(space.shape) == 3 and space.shape[0] >= 4 and space.shape[1] >= 4 and space.dtype == np.uint8:
+            sub = dict(self.subpolicy_kwargs.get("policy_kwargs") or {})
+            sub.setdefault("features_extractor_class", GridCNN)
+            self.subpolicy_kwargs["policy_kwargs"] = sub
+            policy_kwargs.setdefault("features_extractor_class", GridCNN)
+            return policy_kwargs
+        raise ValueError(
+            f"CnnPolicy reads images or symbolic grids (H, W, C) of uint8, and this env's observations are "
+            f"{space}: use HhP('MlpPolicy', env)"
+        )
 
     def _setup_model(self) -> None:
         super()._setup_model()

@@ -8,7 +8,29 @@ import torch as th
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.dqn.policies import CnnPolicy, DQNPolicy, MlpPolicy, MultiInputPolicy
 
-__all__ = ["CnnPolicy", "DQNPolicy", "GoalSpaceFeatures", "MlpPolicy", "MultiInputPolicy"]
+__all__ = ["CnnPolicy", "DQNPolicy", "GoalSpaceFeatures", "GridCNN", "MlpPolicy", "MultiInputPolicy"]
+
+
+class GridCNN(BaseFeaturesExtractor):
+    """A small CNN for symbolic grids (MiniGrid's ``(H, W, 3)`` encodings of object, colour and state): three 2x2
+    convolutions of 16, 32 and 64 channels and a linear layer, as MiniGrid's documentation trains on 7x7 views.
+    SB3's NatureCNN (8x8 kernels of stride 4) is made for 84x84 frames and refuses these observations.
+
+    :param observation_space: a channel-last Box of at least 4x4 cells
+    :param features_dim: size of the output
+    """
+
+    def __init__(self, observation_space: gym.spaces.Box, features_dim: int = 128) -> None:
+        super().__init__(observation_space, features_dim)
+        height, width, channels = observation_space.shape
+        self.cnn = th.nn.Sequential(
+            th.nn.Conv2d(channels, 16, 2), th.nn.ReLU(), th.nn.Conv2d(16, 32, 2), th.nn.ReLU(),
+            th.nn.Conv2d(32, 64, 2), th.nn.ReLU(), th.nn.Flatten(),
+        )
+        self.linear = th.nn.Sequential(th.nn.Linear(64 * (height - 3) * (width - 3), features_dim), th.nn.ReLU())
+
+    def forward(self, observations: th.Tensor) -> th.Tensor:
+        return self.linear(self.cnn(observations.float().permute(0, 3, 1, 2)))
 
 
 class GoalSpaceFeatures(BaseFeaturesExtractor):
