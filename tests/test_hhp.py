@@ -412,6 +412,27 @@ def test_load_refuses_a_zip_whose_components_are_garbage(tmp_path, trained: HhP)
         HhP.load(path)
 
 
+def test_a_model_saved_with_one_sb3_model_per_subgoal_is_refused_with_a_reason(tmp_path, trained: HhP) -> None:
+    """Saves made before the shared replay held a list of SB3 models' states under "subpolicies": loading one says
+    that this version cannot, instead of failing somewhere inside torch."""
+    import io
+
+    path = tmp_path / "old.zip"
+    trained.save(path)
+    with zipfile.ZipFile(path) as archive:
+        members = {name: archive.read(name) for name in archive.namelist()}
+    components = th.load(io.BytesIO(members[COMPONENTS_FILE]), weights_only=False)
+    components["subpolicies"] = [{"policy": {}, "optimizers": [], "num_steps": 0}]  # the old layout
+    buffer = io.BytesIO()
+    th.save(components, buffer)
+    members[COMPONENTS_FILE] = buffer.getvalue()
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+    with pytest.raises(ValueError, match="older sb3_hhp.*train the model again"):
+        HhP.load(path)
+
+
 # ---------------------------------------------------------------------------- ablations
 
 
