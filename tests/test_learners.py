@@ -215,3 +215,50 @@ def test_state_dict_round_trip_and_older_saves_are_refused() -> None:
 def test_bad_subpolicy_arguments_are_refused(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         small_learners(subpolicy_kwargs=kwargs)
+
+
+def test_the_heads_update_is_each_subgoals_double_dqn_loss_on_one_relabelled_batch(monkeypatch) -> None:
+    """SharedHeadsDQN: one batch of stored transitions, relabelled for every sub-goal; its loss is the sum over
+    sub-goals of each one's importance-weighted Huber loss against its Double DQN target of its own n-step returns
+    (computed here with SB3's DQNPolicy view of each head), and one Adam step on the whole network follows."""
+    import copy
+
+    from sb3_hhp.hierarchy.learners import SharedHeadsDQN
+
+    learners = SharedHeadsDQN(spaces.Box(-1, 1, (3,), np.float32), ACTIONS, equal_keys, seed=0, subpolicy_kwargs=dict(
+        policy_kwargs=dict(net_arch=[8]), batch_size=4, learning_starts=4, gamma=0.5, n_steps=3, learning_rate=0.01,
+        max_grad_norm=100.0, replay_buffer_kwargs=dict()))
+    for goal in ("A", "B"):
+        learners.add(goal)
+    rng = np.random.default_rng(0)
+    replay = learners.replay
+    for t, (key, acting) in enumerate(zip(["x", "A", "x", "B", "x", "x"], [0, 0, 1, 1, 1, 0])):
+        replay.add(rng.uniform(-1, 1, (1, 3)).astype(np.float32), np.array([t % 3]),
+                   rng.uniform(-1, 1, (1, 3)).astype(np.float32), np.array([replay.key_id(key)]), np.array([False]),
+                   np.array([False]), np.array([False]), np.array([acting]), np.array([0.1 * t], np.float32))
+    leaves = np.array([0, 2, 3, 4])
+    monkeypatch.setattr(learners.trees, "sample", lambda trees, n, rng: (leaves[None], np.full((1, 4), 0.25)))
+    goals = np.array([0, 1])
+    network = copy.deepcopy(learners.network)
+    optimizer = th.optim.Adam(network.parameters(), lr=0.01)
+    grid = (2, 4)
+    (returns, last, discounts, dones), _ = replay.n_step_returns(np.broadcast_to(leaves, grid), np.zeros(grid, int),
+                                                                  np.broadcast_to(goals[:, None], grid))
+    loss = 0.0
+    for g in goals:
+        policy = learners.policy(int(g))  # the SB3 view: the trunk with g's head
+        with th.no_grad():
+            next_obs = th.as_tensor(replay.next_observations[last[g], 0])
+            next_action = policy.q_net(next_obs).argmax(dim=1, keepdim=True)
+            next_q = policy.q_net_target(next_obs).gather(1, next_action)[:, 0]
+            y = th.as_tensor(returns[g]) + th.as_tensor(discounts[g]) * (1 - th.as_tensor(dones[g])) * next_q
+        obs = th.as_tensor(replay.observations[leaves, 0])
+        q = network(obs)[:, g].gather(1, th.as_tensor(replay.actions[leaves, 0]).long()[:, None])[:, 0]
+        loss = loss + F.smooth_l1_loss(q, y)  # equal priorities: every importance weight is 1
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+    learners.train(goals)
+    for (name, expected), actual in zip(network.named_parameters(), learners.network.parameters()):
+        th.testing.assert_close(actual, expected, rtol=1e-5, atol=1e-6, msg=name)
+    assert learners.last_loss * 2 == pytest.approx(float(loss.detach()), rel=1e-5)

@@ -575,10 +575,11 @@ class SharedHeadsDQN(StackedDQN):
         grid = (len(goals), batch_size)
         row_grid, col_grid = np.broadcast_to(rows, grid), np.broadcast_to(cols, grid)
         goal_grid = np.broadcast_to(goals[:, None], grid)
-        returns, last, discounts, dones = replay._n_step(row_grid, col_grid, goal_grid, own=True)
+        (returns, last, discounts, dones), behaviour = replay.n_step_returns(row_grid, col_grid, goal_grid,
+                                                                             behaviour=replay.lower_bound)
         closings = [((last - rows) % replay.capacity, returns, discounts, dones)]
-        if replay.lower_bound:
-            b_returns, b_last, b_discounts, b_dones = replay._n_step(row_grid, col_grid, goal_grid, own=False)
+        if behaviour is not None:
+            b_returns, b_last, b_discounts, b_dones = behaviour
             closings.append(((b_last - rows) % replay.capacity, b_returns, b_discounts, b_dones))
         # the states closing the returns lie among the n transitions after each drawn one: the network runs once
         # on the distinct ones, whatever the number of sub-goals

@@ -265,10 +265,10 @@ class SharedReplay:
         weights /= weights.max(axis=1, keepdims=True)
         rows, cols = np.divmod(leaves, self.n_envs)
         goal_grid = goals[:, None]
-        returns, last, discounts, dones = self._n_step(rows, cols, goal_grid, own=True)
+        (returns, last, discounts, dones), behaviour = self.n_step_returns(rows, cols, goal_grid, behaviour=self.lower_bound)
         extra = {}
-        if self.lower_bound:
-            b_returns, b_last, b_discounts, b_dones = self._n_step(rows, cols, goal_grid, own=False)
+        if behaviour is not None:
+            b_returns, b_last, b_discounts, b_dones = behaviour
             extra = dict(behaviour_returns=b_returns, behaviour_next_observations=self.next_observations[b_last, cols],
                          behaviour_dones=b_dones, behaviour_discounts=b_discounts)
         return GoalBatch(
@@ -291,24 +291,35 @@ class SharedReplay:
         the same env stored after it and stops at ``terminal(s, g)``, a time limit, the newest transition or
         after n; with ``own``, also where ``g`` did not act next (a transition ``g`` did not act in is a
         one-step return). :return: returns, the row closing each return, ``gamma^m``, and its terminal flag."""
+        return self.n_step_returns(rows, cols, goals, own=own, behaviour=not own)[0 if own else 1]
+
+    def n_step_returns(self, rows: np.ndarray, cols: np.ndarray, goals: np.ndarray, own: bool = True,
+                       behaviour: bool = False) -> tuple:
+        """:meth:`_n_step` for the own returns and (``behaviour``) the returns along the stored behaviour, from one
+        relabelling of the n transitions after each drawn one. :return: ``(own or None, behaviour or None)``."""
         steps = np.arange(self.n_steps)
         seq = (rows[..., None] + steps) % self.capacity  # (T, B, n)
         seq_cols = cols[..., None]
         seq_goals = goals[..., None]
         reward, terminal, cut = self.rewards(seq, seq_cols, seq_goals)
+        discounted = reward * self.gamma ** steps
         newer = (self.pos - 1 - rows) % self.capacity  # transitions of this env stored after the drawn one
         stop = terminal | cut | (steps >= newer[..., None])
+
+        def closed(stop: np.ndarray) -> tuple:
+            stop[..., -1] = True
+            last = stop.argmax(axis=-1)  # m - 1
+            returns = (discounted * (steps <= last[..., None])).sum(axis=-1).astype(np.float32)
+            last_rows = np.take_along_axis(seq, last[..., None], axis=-1)[..., 0]
+            dones = np.take_along_axis(terminal, last[..., None], axis=-1)[..., 0].astype(np.float32)
+            return returns, last_rows, (self.gamma ** (last + 1)).astype(np.float32), dones
+
+        own_result = None
         if own:
             acts = self.acting[seq, seq_cols] == seq_goals
             next_acts = self.acting[(seq + 1) % self.capacity, seq_cols] == seq_goals
-            stop |= ~acts | ~next_acts
-        stop[..., -1] = True
-        last = stop.argmax(axis=-1)  # m - 1
-        mask = steps <= last[..., None]
-        returns = (reward * self.gamma ** steps * mask).sum(axis=-1).astype(np.float32)
-        last_rows = np.take_along_axis(seq, last[..., None], axis=-1)[..., 0]
-        dones = np.take_along_axis(terminal, last[..., None], axis=-1)[..., 0].astype(np.float32)
-        return returns, last_rows, (self.gamma ** (last + 1)).astype(np.float32), dones
+            own_result = closed(stop | ~acts | ~next_acts)
+        return own_result, (closed(stop.copy()) if behaviour else None)
 
     def update_priorities(self, goals: np.ndarray, leaves: np.ndarray, td_errors: np.ndarray) -> None:
         """``p = (|delta| + eps)^alpha`` for the drawn transitions of each sub-goal."""
