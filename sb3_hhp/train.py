@@ -184,7 +184,7 @@ def validate_hyperparams(hyperparams: dict[str, Any], where: str) -> None:
 
 def sample_hhp_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
     """RL Zoo sampler for ``-optimize``: query budget, query threshold, eq. 3's beta, eq. 6's alpha, the
-    meta-controller's learning rate, training on shared experience and what the meta-controller reads.
+    meta-controller's learning rate, how the preference bonus is centred and what the meta-controller reads.
 
     :param trial: the optuna trial
     :param n_actions: unused (RL Zoo's sampler signature)
@@ -198,7 +198,7 @@ def sample_hhp_params(trial: Any, n_actions: int, n_envs: int, additional_args: 
         "beta": trial.suggest_float("beta", 0.0, 1.0),
         "alpha": trial.suggest_float("alpha", 0.01, 2.0, log=True),
         "learning_rate": trial.suggest_float("learning_rate", 1e-5, 3e-3, log=True),
-        "train_shared": trial.suggest_categorical("train_shared", [False, True]),
+        "center_bonus": trial.suggest_categorical("center_bonus", ["mean", "max"]),
         "meta_input": trial.suggest_categorical("meta_input", ["observation", "auto"]),
     }
     if hyperparams["query_mode"] == "fixed":  # the adaptive mode sets its own threshold

@@ -256,11 +256,11 @@ def test_hhp_is_registered_with_rl_zoo() -> None:
     assert HYPERPARAMS_SAMPLER["hhp"] is train.sample_hhp_params
     fixed = optuna.trial.FixedTrial(
         {"query_budget": 80, "query_mode": "fixed", "beta": 0.6, "alpha": 0.3, "learning_rate": 1e-3, "t_qry": 0.2,
-         "train_shared": True, "meta_input": "auto"}
+         "center_bonus": "max", "meta_input": "auto"}
     )
     sampled = HYPERPARAMS_SAMPLER["hhp"](fixed, 0, 1, {})
     assert sampled == {"query_budget": 80, "query_mode": "fixed", "beta": 0.6, "alpha": 0.3, "learning_rate": 1e-3,
-                       "t_qry": 0.2, "train_shared": True, "meta_input": "auto"}
+                       "t_qry": 0.2, "center_bonus": "max", "meta_input": "auto"}
     assert set(sampled) <= set(train.hhp_arguments())
     assert HYPERPARAMS_CONVERTER["hhp"](sampled) == sampled
     # the adaptive mode sets its own threshold: no t_qry is sampled
