@@ -242,14 +242,29 @@ class StackedDQN:
         self.exp_avg[goal] = 0.0
         self.exp_avg_sq[goal] = 0.0
         self.adam_steps[goal] = 0
+        return self._add_counters(goal_key)
+
+    def _add_counters(self, goal_key: Hashable) -> int:
+        """The counters of a new sub-goal and its place in the replay; returns its id."""
         self.own_steps = np.append(self.own_steps, 0)
         self.ticks = np.append(self.ticks, 0)
         self.n_updates = np.append(self.n_updates, 0)
         self.recent.append(deque(maxlen=100))
         self.successes.append(0)
         self.attempts.append(0)
-        self.replay.add_goal(goal_key)
-        return goal
+        return self.replay.add_goal(goal_key)
+
+    def _counters(self) -> dict[str, Any]:
+        return {"own_steps": self.own_steps.tolist(), "ticks": self.ticks.tolist(), "n_updates": self.n_updates.tolist(),
+                "recent": [list(r) for r in self.recent], "successes": list(self.successes),
+                "attempts": list(self.attempts), "goal_keys": list(self.replay.goal_keys)}
+
+    def _load_counters(self, state: dict[str, Any]) -> None:
+        self.own_steps = np.array(state["own_steps"], dtype=np.int64)
+        self.ticks = np.array(state["ticks"], dtype=np.int64)
+        self.n_updates = np.array(state["n_updates"], dtype=np.int64)
+        self.recent = [deque(r, maxlen=100) for r in state["recent"]]
+        self.successes, self.attempts = list(state["successes"]), list(state["attempts"])
 
     def exploration_rate(self, goal: int) -> float:
         """Epsilon of sub-goal ``goal``: linear from the initial to the final value over ``exploration_steps`` own steps."""
@@ -391,9 +406,7 @@ class StackedDQN:
             "exp_avg": self.exp_avg[:n].clone(),
             "exp_avg_sq": self.exp_avg_sq[:n].clone(),
             "adam_steps": self.adam_steps[:n].clone(),
-            "own_steps": self.own_steps.tolist(), "ticks": self.ticks.tolist(), "n_updates": self.n_updates.tolist(),
-            "recent": [list(r) for r in self.recent], "successes": list(self.successes), "attempts": list(self.attempts),
-            "goal_keys": list(self.replay.goal_keys),
+            **self._counters(),
         }
 
     def load_state_dict(self, state: Any) -> None:
@@ -409,11 +422,7 @@ class StackedDQN:
         self.params[:n], self.target[:n] = state["params"].to(self.device), state["target"].to(self.device)
         self.exp_avg[:n], self.exp_avg_sq[:n] = state["exp_avg"].to(self.device), state["exp_avg_sq"].to(self.device)
         self.adam_steps[:n] = state["adam_steps"]
-        self.own_steps = np.array(state["own_steps"], dtype=np.int64)
-        self.ticks = np.array(state["ticks"], dtype=np.int64)
-        self.n_updates = np.array(state["n_updates"], dtype=np.int64)
-        self.recent = [deque(r, maxlen=100) for r in state["recent"]]
-        self.successes, self.attempts = list(state["successes"]), list(state["attempts"])
+        self._load_counters(state)
 
 
 class GoalHeadsQNetwork(th.nn.Module):
@@ -513,14 +522,7 @@ class SharedHeadsDQN(StackedDQN):
         with th.no_grad():
             self.target_network.head_weight[goal] = self.network.head_weight[goal]
             self.target_network.head_bias[goal] = self.network.head_bias[goal]
-        self.own_steps = np.append(self.own_steps, 0)
-        self.ticks = np.append(self.ticks, 0)
-        self.n_updates = np.append(self.n_updates, 0)
-        self.recent.append(deque(maxlen=100))
-        self.successes.append(0)
-        self.attempts.append(0)
-        self.replay.add_goal(goal_key)
-        return goal
+        return self._add_counters(goal_key)
 
     def _grow_heads(self, capacity: int) -> None:
         """More heads; Adam's moments of the old heads are kept, the new heads' start at zero."""
@@ -633,9 +635,7 @@ class SharedHeadsDQN(StackedDQN):
         return {
             "format": "sb3_hhp.SharedHeadsDQN", "capacity": self.network.capacity,
             "network": self.network.state_dict(), "target_network": self.target_network.state_dict(),
-            "optimizer": self.optimizer.state_dict(), "own_steps": self.own_steps.tolist(), "ticks": self.ticks.tolist(),
-            "n_updates": self.n_updates.tolist(), "recent": [list(r) for r in self.recent],
-            "successes": list(self.successes), "attempts": list(self.attempts), "goal_keys": list(self.replay.goal_keys),
+            "optimizer": self.optimizer.state_dict(), **self._counters(),
         }
 
     def load_state_dict(self, state: Any) -> None:
@@ -653,11 +653,7 @@ class SharedHeadsDQN(StackedDQN):
             raise ValueError("The saved sub-goal learners have another network than subpolicy_kwargs builds: load the "
                              f"model with the subpolicy_kwargs it was trained with ({error})") from error
         self.optimizer.load_state_dict(state["optimizer"])
-        self.own_steps = np.array(state["own_steps"], dtype=np.int64)
-        self.ticks = np.array(state["ticks"], dtype=np.int64)
-        self.n_updates = np.array(state["n_updates"], dtype=np.int64)
-        self.recent = [deque(r, maxlen=100) for r in state["recent"]]
-        self.successes, self.attempts = list(state["successes"]), list(state["attempts"])
+        self._load_counters(state)
 
 
 class _SharedTree:
