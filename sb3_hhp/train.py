@@ -36,6 +36,7 @@ import contextlib
 import difflib
 import importlib
 import inspect
+import io
 import json
 import os
 import sys
@@ -540,8 +541,9 @@ def check_env_id(env_id: Optional[str], gym_packages: Sequence[str] = ()) -> str
     """
     import gymnasium as gym
 
-    import gymnasium_robotics
-    import rl_zoo3.import_envs  # noqa: F401  registers MiniGrid, ALE, ...
+    with contextlib.redirect_stderr(io.StringIO()):  # gymnasium-robotics prints a notice on Adroit envs at import
+        import gymnasium_robotics
+        import rl_zoo3.import_envs  # noqa: F401  registers MiniGrid, ALE, ...
 
     gym.register_envs(gymnasium_robotics)  # the Fetch tasks (rl_zoo3 does not register them)
 
@@ -565,6 +567,8 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
     :param argv: the arguments (default ``sys.argv[1:]``)
     :return: the summary, or None when nothing was trained (``-optimize``)
     """
+    with contextlib.redirect_stderr(io.StringIO()):  # gymnasium-robotics prints a notice on Adroit envs at import
+        import gymnasium_robotics  # noqa: F401  (rl_zoo3 imports it too)
     import rl_zoo3.train
 
     from sb3_hhp.oracles.registry import ORACLE_NAMES
