@@ -108,14 +108,17 @@ class HhP(DoubleDQN):
         space has them and ``policy_kwargs`` names no features extractor; see the README's Design)
     :param predictor_kwargs: more arguments of :class:`~sb3_hhp.preferences.predictor.PreferencePredictor`
     :param rnd_kwargs: arguments of :class:`~sb3_hhp.curiosity.rnd.RND` (memory_size M, refresh_interval T, ...)
-    :param subpolicy_kwargs: arguments of each subpolicy model (DoubleDQN or DDPG)
+    :param subpolicy_kwargs: arguments of the sub-goal learners, in SB3 DQN's names (discrete actions: over
+        :data:`~sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWARGS`; ``PAPER_SUBPOLICY_KWARGS`` is the paper's learner;
+        ``buffer_size`` is the shared replay's, in primitive transitions) or of each sub-goal's SB3 DDPG (continuous)
     :param subpolicy_exploration_steps: own steps over which a subpolicy's epsilon decays
     :param preference_db: path of the SQLite preference store (None: in memory)
     :param oracle_kwargs: arguments of the oracle built from a name
     :param n_opt: meta-controller gradient steps after each episode (N_opt = 4)
-    :param share_experience: every transition also trains (off-policy) the other subpolicies, relabelled with their rewards
-    :param train_shared: with ``share_experience``, every subpolicy takes its gradient steps on every primitive
-        step (at its own ``train_freq``), not only while it acts (see the README's Design)
+    :param share_experience: every transition also trains (off-policy) the other sub-goals' learners, relabelled with
+        their rewards (False: each learns only from the steps where it acted)
+    :param train_shared: ``subgoal_learner="stacked"`` and DDPG sub-goals: every sub-goal takes its gradient steps on
+        every primitive step (at its own ``train_freq``), not only while it acts; the heads learner always does
     :param subgoal_learner: discrete actions: "heads" (default: one network, a shared trunk and one head per sub-goal,
         one relabelled batch for all; the cost of a step barely grows with the number of sub-goals) or "stacked" (a
         network of its own per sub-goal, all updated in one call; cost and memory grow with the number of sub-goals);
