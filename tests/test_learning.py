@@ -11,24 +11,31 @@ meta-controller with its own): a greedy subpolicy can get stuck repeating one ac
 forth, or a no-op such as "pick up" in front of the goal) until its sub-goal gives up, and a greedy
 meta-controller then chooses the same sub-goal again from the same state.
 
-Calibration (2-core CPU, one torch thread, 12,000 primitive steps, ~65 s of training, 30 evaluation
-episodes on seeds 10,000-10,029; the random policy: success 0.60, mean return 0.354), with the defaults
-of the meta-controller's sub-goal mask and the predictor reading the goal space's features:
+Calibration: the class defaults (the sub-goal learner of ``DEFAULT_SUBPOLICY_KWARGS``, heads of one network over
+one shared replay), 8,000 primitive steps, 30 evaluation episodes on seeds 10,000-10,029, training seeds 0-9, on
+this 2-core machine with two other training processes running (one torch thread; 69-89 s of training each). The random policy scores success 0.60, mean return 0.354 on these seeds.
 
 ==========  ============  ===========
 train seed  success rate  mean return
 ==========  ============  ===========
-0 (test)    0.97          0.781
-1           0.90          0.761
-2           0.93          0.807
-3           0.67          0.605
-4           0.90          0.811
-5           0.90          0.832
+0 (test)    1.00          0.958
+1           1.00          0.949
+2           1.00          0.950
+3           1.00          0.942
+4           1.00          0.962
+5           1.00          0.952
+6           1.00          0.941
+7           1.00          0.946
+8           1.00          0.943
+9           1.00          0.919
 ==========  ============  ===========
 
-so the mean-return margin (random + 0.2) holds for every seed tried and the success threshold (0.7) for
-all but seed 3; the test trains seed 0 only. (Before the mask and the features: 1.00, 0.93, 0.97, 0.90,
-0.87, 0.90.)
+Every seed clears both bars (success 0.9, mean return 0.4 above the random policy's) with room to spare, so the
+test does not hinge on the seed; the test trains seed 0 only. A run is deterministic given its seed on one machine
+(``tests/test_hhp.py::test_same_seed_same_run``); on another CPU, floating-point results may differ in the last
+bits (other vectorised kernels), and training amplifies such differences, which is why the bars are set where
+every calibration seed clears them, not at one seed's figure. (The learner before the shared replay scored 0.00
+on another machine of this kind with seed 0, and 0.67 on seed 3 here.)
 """
 
 from collections.abc import Callable
@@ -44,10 +51,10 @@ from sb3_hhp.goals import wrap_env
 
 ENV_ID = "MiniGrid-Empty-Random-5x5-v0"
 TRAIN_SEED = 0
-TRAIN_STEPS = 12_000  # primitive env steps, about a minute on one CPU thread
+TRAIN_STEPS = 8_000  # primitive env steps
 EVAL_SEEDS = [10_000 + i for i in range(30)]  # never a training seed
-MIN_SUCCESS_RATE = 0.7
-MIN_RETURN_MARGIN = 0.2  # mean return above the random policy's, on the same seeds
+MIN_SUCCESS_RATE = 0.9
+MIN_RETURN_MARGIN = 0.4  # mean return above the random policy's, on the same seeds
 
 pytestmark = pytest.mark.slow
 
