@@ -42,11 +42,14 @@ from sb3_hhp.goals import wrap_env
 from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry
 
 
-def entry_kwargs(env_id: str) -> tuple[str, dict[str, Any]]:
-    """The YAML entry's HhP keyword arguments (RL Zoo's own keys left out) and the entry's name."""
+def entry_kwargs(env_id: str, overrides: str = "{}") -> tuple[str, dict[str, Any]]:
+    """The YAML entry's HhP keyword arguments (RL Zoo's own keys left out), updated with ``overrides`` (JSON), and
+    the entry's name."""
     table = yaml.safe_load(default_config_path().read_text())
     name = select_entry(table, env_id)
-    return name, {key: value for key, value in table[name].items() if key not in ZOO_KEYS}
+    kwargs = {key: value for key, value in table[name].items() if key not in ZOO_KEYS}
+    kwargs.update(json.loads(overrides))
+    return name, kwargs
 
 
 def timed_window(model: Any, start: int, stop: int) -> float:
@@ -58,7 +61,7 @@ def timed_window(model: Any, start: int, stop: int) -> float:
 
 
 def ratio(args: argparse.Namespace) -> dict[str, Any]:
-    entry, kwargs = entry_kwargs(args.env)
+    entry, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
     kwargs["oracle"] = "scripted"
     sub = {"batch_size": 128, "train_freq": 1, "learning_starts": 500, "policy_kwargs": {"net_arch": [256, 256]},
            **kwargs.get("subpolicy_kwargs", {})}
@@ -73,13 +76,14 @@ def ratio(args: argparse.Namespace) -> dict[str, Any]:
     hhp.learn(args.profile_steps, reset_num_timesteps=False)
     profiler.disable()
     out = pathlib.Path(args.out)
-    with open(out / "speed_profile.txt", "w") as handle:
+    with open(out / f"{args.name or 'ratio'}_profile.txt", "w") as handle:
         stats = pstats.Stats(profiler, stream=handle)
         handle.write(f"HhP ({entry} entry) on {args.env}, {args.profile_steps} steps after step {args.stop}, "
                      f"{len(hhp.subgoals)} sub-goals\n")
         stats.sort_stats("cumulative").print_stats(45)
         stats.sort_stats("tottime").print_stats(25)
-    return dict(env=args.env, entry=entry, window=[args.start, args.stop], seed=args.seed, dqn_fps=round(dqn_fps, 1),
+    return dict(env=args.env, entry=entry, hhp_kwargs=json.loads(args.hhp_kwargs), window=[args.start, args.stop],
+                seed=args.seed, dqn_fps=round(dqn_fps, 1),
                 hhp_fps=round(hhp_fps, 1), ratio=round(hhp_fps / dqn_fps, 3), num_subgoals=len(hhp.subgoals),
                 dqn_learning=dict(net_arch=sub["policy_kwargs"]["net_arch"], train_freq=sub["train_freq"],
                                   batch_size=sub["batch_size"]))
@@ -106,7 +110,7 @@ def distinct_states(env_id: str, n: int, seed: int) -> list[np.ndarray]:
 
 def one_subgoal_count(args: argparse.Namespace) -> dict[str, Any]:
     """In this process: HhP with ``args.k`` sub-goals handed in; seconds per primitive step and peak memory."""
-    _, kwargs = entry_kwargs(args.env)
+    _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
     kwargs.update(oracle="scripted", discovery="none", subgoals=distinct_states(args.env, args.k, args.seed))
     model = HhP("MlpPolicy", gym.make(args.env), seed=args.seed, **kwargs)
     fps = timed_window(model, args.start, args.stop)
@@ -119,11 +123,11 @@ def subgoals(args: argparse.Namespace) -> dict[str, Any]:
     rows = []
     for k in args.counts:
         command = [sys.executable, __file__, "one", "--env", args.env, "--k", str(k), "--seed", str(args.seed),
-                   "--start", str(args.start), "--stop", str(args.stop)]
+                   "--start", str(args.start), "--stop", str(args.stop), "--hhp-kwargs", args.hhp_kwargs]
         rows.append(json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout.splitlines()[-1]))
         print(json.dumps(rows[-1]), flush=True)
     low, high = rows[0], rows[-1]
-    return dict(env=args.env, window=[args.start, args.stop], seed=args.seed, rows=rows,
+    return dict(env=args.env, window=[args.start, args.stop], seed=args.seed, hhp_kwargs=json.loads(args.hhp_kwargs), rows=rows,
                 cost_ratio=round(high["ms_per_step"] / low["ms_per_step"], 3),
                 memory_ratio=round(high["peak_rss_mb"] / low["peak_rss_mb"], 3))
 
@@ -138,6 +142,8 @@ def main() -> None:
     parser.add_argument("--profile-steps", type=int, default=5_000)
     parser.add_argument("--counts", type=int, nargs="+", default=[2, 32], help="sub-goal counts (subgoals)")
     parser.add_argument("--k", type=int, default=2, help=argparse.SUPPRESS)
+    parser.add_argument("--hhp-kwargs", default="{}", help="JSON: HhP arguments over the entry's, e.g. '{\"subgoal_learner\": \"heads\"}'")
+    parser.add_argument("--name", default=None, help="the result file's name (default: the measurement's)")
     parser.add_argument("--out", default="benchmarks/results/speed")
     args = parser.parse_args()
     th.set_num_threads(1)
@@ -149,7 +155,7 @@ def main() -> None:
     result = ratio(args) if args.what == "ratio" else subgoals(args)
     result.update(threads=1, load_average_start=round(load_before, 2), load_average_end=round(os.getloadavg()[0], 2),
                   command=" ".join(sys.argv))
-    (pathlib.Path(args.out) / f"{args.what}.json").write_text(json.dumps(result, indent=2) + "\n")
+    (pathlib.Path(args.out) / f"{args.name or args.what}.json").write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))
 
 
