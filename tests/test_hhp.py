@@ -135,21 +135,27 @@ def test_predict_keeps_the_subgoal_until_episode_start_or_give_up(trained: HhP) 
         starts.append(start)
         if terminated or truncated:
             env.reset()
-    for start in starts[::10]:
-        start = start[None]
-        _, (first, _) = trained.predict(start, deterministic=True)
-        failed = (np.array([first[0]]), np.array([trained.max_subgoal_steps]))
-        _, (goals, _) = trained.predict(start, state=failed, episode_start=np.array([False]), deterministic=True)
-        with th.no_grad():
-            q_values = trained.q_net(trained.policy.obs_to_tensor(start)[0]).cpu().numpy()[0, : len(trained.subgoals)]
-        q_values[~trained.action_mask(start)[0, : len(trained.subgoals)]] = -np.inf  # among the choosable sub-goals
-        q_values[first[0]] = -np.inf
-        if np.isfinite(q_values).any():
-            cases["other"] += 1
-            assert goals[0] != first[0] and goals[0] == int(np.argmax(q_values))
-        else:
-            cases["only"] += 1
-            assert goals[0] == first[0]
+    masked = trained.mask_subgoals
+    try:
+        for trained.mask_subgoals in (True, False):  # unmasked, every state has another sub-goal to take
+            for start in starts[::10]:
+                start = start[None]
+                _, (first, _) = trained.predict(start, deterministic=True)
+                failed = (np.array([first[0]]), np.array([trained.max_subgoal_steps]))
+                _, (goals, _) = trained.predict(start, state=failed, episode_start=np.array([False]), deterministic=True)
+                with th.no_grad():
+                    q_values = trained.q_net(trained.policy.obs_to_tensor(start)[0]).cpu().numpy()[0, : len(trained.subgoals)]
+                mask = np.broadcast_to(trained.action_mask(start), (1, int(trained.action_space.n)))
+                q_values[~mask[0, : len(trained.subgoals)]] = -np.inf  # among the choosable sub-goals
+                q_values[first[0]] = -np.inf
+                if np.isfinite(q_values).any():
+                    cases["other"] += 1
+                    assert goals[0] != first[0] and goals[0] == int(np.argmax(q_values))
+                else:
+                    cases["only"] += 1
+                    assert goals[0] == first[0]
+    finally:
+        trained.mask_subgoals = masked
     assert cases["other"] > 0, cases  # the rule was exercised at least once
 
 

@@ -627,7 +627,9 @@ class HhP(DoubleDQN):
                 failed = goals[np.asarray(renew)[gave_up]]
                 with th.no_grad():
                     q_values = self.q_net(self.policy.obs_to_tensor(batch[np.asarray(renew)[gave_up]])[0]).cpu().numpy()
-                q_values[~self.action_mask(batch[np.asarray(renew)[gave_up]])] = -np.inf
+                mask = self.action_mask(batch[np.asarray(renew)[gave_up]])
+                if mask is not None:  # one row per state, or one row for all (mask_subgoals=False)
+                    q_values[~np.broadcast_to(mask, q_values.shape)] = -np.inf
                 allowed = np.isfinite(q_values)
                 q_values[np.arange(len(gave_up)), failed] = -np.inf
                 chosen = np.array(chosen, copy=True)
