@@ -63,7 +63,7 @@ def main() -> None:
         stoch = evaluate(model, env, 30, True, 20_000, deterministic=False)["success_rate"]
         print(variant, dict(t=model.num_timesteps, det=det, stoch=stoch, sigma=round(model.return_normalizer.sigma, 3),
                             queries=model.query_selector.used, seconds=round(time.time() - start)), flush=True)
-    print({model.goal_space.describe(goal.key): (model.subpolicies[i].success_rate, model.subpolicies[i].attempts)
+    print({model.goal_space.describe(goal.key): (model.subpolicies.success_rate(i), model.subpolicies.attempts[i])
            for i, goal in enumerate(model.subgoals)})
 
 

@@ -19,7 +19,7 @@ for seed in [20000, 20001]:
         q = m.q_net(m.policy.obs_to_tensor(obs)[0]).cpu().numpy()[0][:len(names)]
     b = m.preference_bonus(np.repeat(obs[None], len(names), 0), np.arange(len(names)))
     for i in np.argsort(-q)[:6]:
-        print(f"  q={q[i]:+.3f} b={b[i]:+.3f} succ={m.subpolicies[i].success_rate} n={m.subpolicies[i].attempts} {names[i]}")
+        print(f"  q={q[i]:+.3f} b={b[i]:+.3f} succ={m.subpolicies.success_rate(i)} n={m.subpolicies.attempts[i]} {names[i]}")
     print("  best bonus:", names[int(np.argmax(b))])
 import sys
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))

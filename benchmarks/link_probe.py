@@ -73,21 +73,21 @@ def main() -> None:
             result["links"][link] = None
             continue
         goal_id = names.index(name)
-        subpolicy, goal_key = model.subpolicies[goal_id], model.subgoals[goal_id].key
+        learners, goal_key = model.subpolicies, model.subgoals[goal_id].key
         reached = {}
         for deterministic in (True, False):
             count = 0
             for layout in range(args.layouts):
                 obs = start(env, 30_000 + layout, link)
                 for _ in range(model.max_subgoal_steps):
-                    obs, reward, terminated, truncated, _ = env.step(int(subpolicy.act(obs, deterministic=deterministic)))
+                    obs, reward, terminated, truncated, _ = env.step(int(learners.act([goal_id], obs[None], deterministic=deterministic)[0]))
                     if space.achieved(space.terminal_key(obs, float(reward), terminated), goal_key):
                         count += 1
                         break
                     if terminated or truncated:
                         break
             reached["greedy" if deterministic else "epsilon_greedy"] = count / args.layouts
-        result["links"][link] = dict(subgoal=name, own_steps=subpolicy.num_steps, **reached)
+        result["links"][link] = dict(subgoal=name, own_steps=int(learners.own_steps[goal_id]), **reached)
         print(link, json.dumps(result["links"][link]), flush=True)
     if args.out:
         pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -59,18 +59,18 @@ def main() -> None:
     names = [model.goal_space.describe(goal.key) for goal in model.subgoals]
     if PICKUP_GOAL not in names:
         raise SystemExit(f"no {PICKUP_GOAL!r} sub-goal was found; sub-goals: {names}")
-    subpolicy = model.subpolicies[names.index(PICKUP_GOAL)].model
+    subpolicy = model.subpolicies.policy(names.index(PICKUP_GOAL))  # the SB3 DQNPolicy view
     env = wrap_env(gym.make(args.env))
     rows = []
     for i in range(args.layouts):
         obs = facing_key(env, 30_000 + i)
         with th.no_grad():
-            q = subpolicy.q_net(th.as_tensor(obs[None], device=subpolicy.device)).cpu().numpy()[0]
+            q = subpolicy.q_net(th.as_tensor(obs[None], device=subpolicy.device)).detach().cpu().numpy()[0]
         rows.append(dict(seed=30_000 + i, q=[round(float(v), 3) for v in q], pickup_is_argmax=bool(q.argmax() == Actions.pickup),
                          margin_over_done=round(float(q[Actions.pickup] - q[Actions.done]), 3)))
         print(rows[-1], flush=True)
     result = dict(env=args.env, seed=args.seed, steps=int(model.num_timesteps), load=args.load,
-                  hhp_kwargs=json.loads(args.hhp_kwargs), gamma=subpolicy.gamma,
+                  hhp_kwargs=json.loads(args.hhp_kwargs), gamma=model.subpolicies.gamma,
                   pickup_is_argmax=float(np.mean([row["pickup_is_argmax"] for row in rows])),
                   mean_margin_over_done=float(np.mean([row["margin_over_done"] for row in rows])), layouts=rows)
     out = pathlib.Path(args.out)

@@ -42,7 +42,7 @@ def scripted_meta(model: HhP, env_id: str, episodes: int, deterministic: bool) -
             name = goal_space.describe(keys[goal])
             chosen[name] += 1
             for _ in range(model.max_subgoal_steps):
-                obs, reward, terminated, truncated, _ = env.step(model.subpolicies[goal].act(obs, deterministic=deterministic))
+                obs, reward, terminated, truncated, _ = env.step(model.subpolicies.act([goal], obs[None], deterministic=deterministic)[0])
                 total += float(reward)
                 done = terminated or truncated
                 if goal_space.achieved(goal_space.terminal_key(obs, float(reward), terminated), keys[goal]):

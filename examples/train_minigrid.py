@@ -62,8 +62,8 @@ def main() -> None:
     print(f"queries: {model.query_selector.used} of {model.query_selector.budget} asked; answers {dict(answers)}")
     print(f"sub-goals ({len(model.subgoals)}):")
     for goal_id, goal in enumerate(model.subgoals):
-        sub = model.subpolicies[goal_id]
-        rate = "n/a" if sub.success_rate is None else f"{sub.success_rate:.2f}"
+        success_rate = model.subpolicies.success_rate(goal_id)
+        rate = "n/a" if success_rate is None else f"{success_rate:.2f}"
         print(f"  {goal_id:2d}  {model.goal_space.describe(goal.key):45s} found at step {goal.found_at:6d}"
               f"  ({goal.source}), reached {rate} of recent tries")
     if args.save:
