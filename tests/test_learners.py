@@ -237,7 +237,7 @@ def test_the_heads_update_is_each_subgoals_double_dqn_loss_on_one_relabelled_bat
                    rng.uniform(-1, 1, (1, 3)).astype(np.float32), np.array([replay.key_id(key)]), np.array([False]),
                    np.array([False]), np.array([False]), np.array([acting]), np.array([0.1 * t], np.float32))
     leaves = np.array([0, 2, 3, 4])
-    monkeypatch.setattr(learners.trees, "sample", lambda trees, n, rng: (leaves[None], np.full((1, 4), 0.25)))
+    monkeypatch.setattr(learners.replay.trees, "sample", lambda trees, n, rng: (leaves[None], np.full((1, 4), 0.25)))
     goals = np.array([0, 1])
     network = copy.deepcopy(learners.network)
     optimizer = th.optim.Adam(network.parameters(), lr=0.01)

@@ -22,7 +22,7 @@ from stable_baselines3.dqn.policies import CnnPolicy, DQNPolicy, MlpPolicy
 from torch.func import functional_call, vmap
 from torch.nn import functional as F
 
-from sb3_hhp.hierarchy.replay import GoalTrees, SharedReplay
+from sb3_hhp.hierarchy.replay import SharedReplay
 
 #: subpolicy keyword arguments the stacked learner reads (SB3 DQN's names), and those it accepts and ignores
 _USED = {
@@ -98,6 +98,9 @@ class StackedDQN:
     :param seed: seed of the initialisations (sub-goal ``g`` gets ``seed + g``), exploration and draws
     """
 
+    #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
+    _shared_priorities = False
+
     def __init__(
         self,
         observation_space: spaces.Box,
@@ -146,6 +149,7 @@ class StackedDQN:
         self.replay = SharedReplay(
             int(kw["buffer_size"]), observation_space, action_space, achieved, n_envs=n_envs, alpha=alpha, gamma=self.gamma,
             n_steps=int(kw["n_steps"]), lower_bound=lower_bound, share_experience=share_experience,
+            shared_priorities=self._shared_priorities,
             priority_alpha=kw["prioritized_replay_alpha"], priority_beta=kw["prioritized_replay_beta"],
             priority_eps=kw["prioritized_replay_eps"], seed=seed,
         )
@@ -494,10 +498,10 @@ class SharedHeadsDQN(StackedDQN):
     Arguments as :class:`StackedDQN`.
     """
 
+    _shared_priorities = True
+
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self.trees = GoalTrees(1, self.replay.capacity * self.replay.n_envs)
-        self.replay.trees = _SharedTree(self.trees)  # new transitions get the largest priority of the one tree
         policy = self._make_policy()
         policy_kwargs = {k: v for k, v in dict(self.kwargs["policy_kwargs"] or {}).items() if k != "optimizer_kwargs"}
         net_arch = policy_kwargs.get("net_arch", [64, 64])
@@ -569,10 +573,8 @@ class SharedHeadsDQN(StackedDQN):
         """One gradient step of the network for every sub-goal of ``goals`` on one shared, relabelled batch."""
         replay, n_steps, batch_size = self.replay, self.replay.n_steps, self.batch_size
         goals = np.asarray(goals, dtype=np.int64)
-        leaves, probabilities = self.trees.sample(np.array([0]), batch_size, replay._rng)
-        leaves, probabilities = leaves[0], probabilities[0]
-        weights = (replay.size() * replay.n_envs * np.maximum(probabilities, 1e-12)) ** (-replay.priority_beta)
-        weights = (weights / weights.max()).astype(np.float32)
+        leaves, probabilities = replay.trees.sample(np.array([0]), batch_size, replay._rng)
+        leaves, weights = leaves[0], replay.importance_weights(probabilities[0])
         rows, cols = np.divmod(leaves, replay.n_envs)
         grid = (len(goals), batch_size)
         row_grid, col_grid = np.broadcast_to(rows, grid), np.broadcast_to(cols, grid)
@@ -614,7 +616,7 @@ class SharedHeadsDQN(StackedDQN):
         th.nn.utils.clip_grad_norm_(self.network.parameters(), self.max_grad_norm)
         self.optimizer.step()
         td_errors = ((y - q).detach().abs() * mask).amax(dim=0).cpu().numpy()
-        self.trees.update(np.array([0]), leaves[None, :], (td_errors[None, :] + replay.priority_eps) ** replay.priority_alpha)
+        replay.update_priorities(np.array([0]), leaves[None, :], td_errors[None, :])
         self.n_updates[goals] += 1
         self.n_train_calls += 1
         self.last_loss = float(loss.detach()) / max(1, len(goals))
@@ -654,26 +656,3 @@ class SharedHeadsDQN(StackedDQN):
                              f"model with the subpolicy_kwargs it was trained with ({error})") from error
         self.optimizer.load_state_dict(state["optimizer"])
         self._load_counters(state)
-
-
-class _SharedTree:
-    """The replay's view of :class:`SharedHeadsDQN`'s one tree: every stored transition in it, whatever the sub-goals."""
-
-    def __init__(self, trees: GoalTrees) -> None:
-        self.trees = trees
-
-    @property
-    def n_trees(self) -> int:
-        return 1
-
-    def grow(self, n_trees: int) -> None:
-        pass
-
-    def fill(self, tree: int, leaves: np.ndarray, priority: float = 1.0) -> None:
-        pass  # a new sub-goal reads the same tree
-
-    def add(self, leaves: np.ndarray, trees: np.ndarray) -> None:
-        self.trees.add(leaves, np.array([True]))
-
-    def total(self, trees: np.ndarray) -> np.ndarray:
-        return np.repeat(self.trees.total(np.array([0])), len(trees))

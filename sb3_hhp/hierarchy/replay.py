@@ -139,6 +139,8 @@ class SharedReplay:
     :param n_steps: length of the n-step returns (1: one-step)
     :param lower_bound: also draw the return along the stored behaviour (needs ``n_steps > 1``)
     :param share_experience: every sub-goal learns from every transition; False: only from its own
+    :param shared_priorities: one sum tree for every sub-goal (a transition's priority is set by whoever draws it,
+        :class:`~sb3_hhp.hierarchy.learners.SharedHeadsDQN`), instead of one tree per sub-goal
     :param priority_alpha, priority_beta, priority_eps: prioritized replay's alpha, beta and epsilon
     :param seed: seed of the draws
     """
@@ -155,6 +157,7 @@ class SharedReplay:
         n_steps: int = 1,
         lower_bound: bool = False,
         share_experience: bool = True,
+        shared_priorities: bool = False,
         priority_alpha: float = 0.6,
         priority_beta: float = 0.4,
         priority_eps: float = 1e-6,
@@ -189,7 +192,8 @@ class SharedReplay:
         self.keys: dict[Hashable, int] = {}
         self.goal_keys: list[Hashable] = []
         self._done_table = np.zeros((16, 4), dtype=bool)  # done(key id, goal id)
-        self.trees = GoalTrees(4, self.capacity * self.n_envs)
+        self.shared_priorities = bool(shared_priorities)
+        self.trees = GoalTrees(1 if shared_priorities else 4, self.capacity * self.n_envs)
         self._rng = np.random.default_rng(seed)
 
     # ------------------------------------------------------------------ keys and sub-goals
@@ -219,6 +223,8 @@ class SharedReplay:
             self._done_table = np.concatenate([self._done_table, np.zeros_like(self._done_table)], axis=1)
         for key, key_id in self.keys.items():
             self._done_table[key_id, goal] = self._achieved(key, goal_key)
+        if self.shared_priorities:  # the one tree already holds every stored transition
+            return goal
         self.trees.grow(max(self.trees.n_trees * (2 if goal >= self.trees.n_trees else 1), goal + 1))
         stored = np.arange(self.size() * self.n_envs)
         if not self.share_experience:
@@ -246,11 +252,12 @@ class SharedReplay:
         self.intrinsic[pos] = intrinsic
         leaves = pos * self.n_envs + np.arange(self.n_envs)
         n_goals = self.n_goals
-        if self.share_experience:
-            learns = np.ones(n_goals, dtype=bool)
+        if self.shared_priorities or self.share_experience:
+            learns = np.ones(self.trees.n_trees, dtype=bool)
         else:
-            learns = (np.arange(n_goals)[:, None] == np.asarray(acting)[None, :]).any(axis=1)
-        self.trees.add(leaves, np.concatenate([learns, np.zeros(max(0, self.trees.n_trees - n_goals), dtype=bool)]))
+            learns = (np.arange(self.trees.n_trees)[:, None] == np.asarray(acting)[None, :]).any(axis=1)
+        learns[n_goals:] = self.shared_priorities  # trees not yet given to a sub-goal stay empty
+        self.trees.add(leaves, learns)
         self.pos = (pos + 1) % self.capacity
         self.full = self.full or self.pos == 0
 
@@ -260,9 +267,7 @@ class SharedReplay:
         n-step returns of eq. 6 rewards computed now from ``done(s', g)``."""
         goals = np.asarray(goals, dtype=np.int64)
         leaves, probabilities = self.trees.sample(goals, batch_size, self._rng)
-        n_stored = self.size() * self.n_envs
-        weights = (n_stored * np.maximum(probabilities, 1e-12)) ** (-self.priority_beta)
-        weights /= weights.max(axis=1, keepdims=True)
+        weights = self.importance_weights(probabilities)
         rows, cols = np.divmod(leaves, self.n_envs)
         goal_grid = goals[:, None]
         (returns, last, discounts, dones), behaviour = self.n_step_returns(rows, cols, goal_grid, behaviour=self.lower_bound)
@@ -274,8 +279,13 @@ class SharedReplay:
         return GoalBatch(
             goals=goals, observations=self.observations[rows, cols], actions=self.actions[rows, cols], returns=returns,
             next_observations=self.next_observations[last, cols], dones=dones, discounts=discounts,
-            weights=weights.astype(np.float32), leaves=leaves, **extra,
+            weights=weights, leaves=leaves, **extra,
         )
+
+    def importance_weights(self, probabilities: np.ndarray) -> np.ndarray:
+        """``w = (N * P(i))^-beta``, normalised by the largest weight of each row of draws."""
+        weights = (self.size() * self.n_envs * np.maximum(probabilities, 1e-12)) ** (-self.priority_beta)
+        return (weights / weights.max(axis=-1, keepdims=True)).astype(np.float32)
 
     def rewards(self, rows: np.ndarray, cols: np.ndarray, goals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Eq. 5 and 6 for sub-goals ``goals`` at stored transitions: the reward, ``terminal(s', g)`` (the env's
