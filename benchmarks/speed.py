@@ -36,9 +36,12 @@ import numpy as np
 import torch as th
 import yaml
 from stable_baselines3 import DQN
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
 from sb3_hhp import HhP
 from sb3_hhp.goals import wrap_env
+from sb3_hhp.hierarchy.learners import default_subpolicy_kwargs
 from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry
 
 
@@ -60,16 +63,24 @@ def timed_window(model: Any, start: int, stop: int) -> float:
     return (model.num_timesteps - steps) / (time.perf_counter() - begin)
 
 
+def make_envs(env_id: str, n_envs: int, seed: int) -> Any:
+    """``n_envs`` envs as RL Zoo builds them for the YAML entry (``env_wrapper``: the goal space's observation)."""
+    return make_vec_env(env_id, n_envs=n_envs, wrapper_class=wrap_env, seed=seed)
+
+
 def ratio(args: argparse.Namespace) -> dict[str, Any]:
     entry, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
     kwargs["oracle"] = "scripted"
-    sub = {"batch_size": 128, "train_freq": 1, "learning_starts": 500, "policy_kwargs": {"net_arch": [256, 256]},
-           **kwargs.get("subpolicy_kwargs", {})}
-    dqn = DQN("MlpPolicy", wrap_env(gym.make(args.env)), learning_starts=sub["learning_starts"], batch_size=sub["batch_size"],
-              train_freq=sub["train_freq"], gradient_steps=1, buffer_size=50_000,
-              policy_kwargs=dict(net_arch=sub["policy_kwargs"]["net_arch"]), seed=args.seed)
+    # the flat learner does the sub-goal learners' work per primitive step: their network, train_freq, batch size
+    sub = {**default_subpolicy_kwargs(), **kwargs.get("subpolicy_kwargs", {})}
+    net_arch = (sub.get("policy_kwargs") or {}).get("net_arch", [64, 64])
+    dqn = DQN("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), learning_starts=sub["learning_starts"],
+              batch_size=sub["batch_size"], train_freq=sub["train_freq"], gradient_steps=max(1, args.n_envs // sub["train_freq"]),
+              buffer_size=50_000, policy_kwargs=dict(net_arch=net_arch), seed=args.seed)
+    if args.n_envs > 1:  # SB3's train_freq counts steps of the VecEnv: one update per train_freq primitive steps
+        dqn.train_freq = TrainFreq(1, TrainFrequencyUnit.STEP)
     dqn_fps = timed_window(dqn, args.start, args.stop)
-    hhp = HhP("MlpPolicy", gym.make(args.env), seed=args.seed, **kwargs)
+    hhp = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **kwargs)
     hhp_fps = timed_window(hhp, args.start, args.stop)
     profiler = cProfile.Profile()
     profiler.enable()
@@ -83,10 +94,9 @@ def ratio(args: argparse.Namespace) -> dict[str, Any]:
         stats.sort_stats("cumulative").print_stats(45)
         stats.sort_stats("tottime").print_stats(25)
     return dict(env=args.env, entry=entry, hhp_kwargs=json.loads(args.hhp_kwargs), window=[args.start, args.stop],
-                seed=args.seed, dqn_fps=round(dqn_fps, 1),
+                seed=args.seed, n_envs=args.n_envs, dqn_fps=round(dqn_fps, 1),
                 hhp_fps=round(hhp_fps, 1), ratio=round(hhp_fps / dqn_fps, 3), num_subgoals=len(hhp.subgoals),
-                dqn_learning=dict(net_arch=sub["policy_kwargs"]["net_arch"], train_freq=sub["train_freq"],
-                                  batch_size=sub["batch_size"]))
+                dqn_learning=dict(net_arch=net_arch, train_freq=sub["train_freq"], batch_size=sub["batch_size"]))
 
 
 def distinct_states(env_id: str, n: int, seed: int) -> list[np.ndarray]:
@@ -112,7 +122,7 @@ def one_subgoal_count(args: argparse.Namespace) -> dict[str, Any]:
     """In this process: HhP with ``args.k`` sub-goals handed in; seconds per primitive step and peak memory."""
     _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
     kwargs.update(oracle="scripted", discovery="none", subgoals=distinct_states(args.env, args.k, args.seed))
-    model = HhP("MlpPolicy", gym.make(args.env), seed=args.seed, **kwargs)
+    model = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **kwargs)
     fps = timed_window(model, args.start, args.stop)
     return dict(k=args.k, fps=round(fps, 1), ms_per_step=round(1000 / fps, 3),
                 peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
@@ -123,7 +133,8 @@ def subgoals(args: argparse.Namespace) -> dict[str, Any]:
     rows = []
     for k in args.counts:
         command = [sys.executable, __file__, "one", "--env", args.env, "--k", str(k), "--seed", str(args.seed),
-                   "--start", str(args.start), "--stop", str(args.stop), "--hhp-kwargs", args.hhp_kwargs]
+                   "--start", str(args.start), "--stop", str(args.stop), "--hhp-kwargs", args.hhp_kwargs,
+                   "--n-envs", str(args.n_envs)]
         rows.append(json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout.splitlines()[-1]))
         print(json.dumps(rows[-1]), flush=True)
     low, high = rows[0], rows[-1]
@@ -140,6 +151,7 @@ def main() -> None:
     parser.add_argument("--start", type=int, default=20_000, help="primitive steps before the timed window")
     parser.add_argument("--stop", type=int, default=30_000, help="primitive steps at the end of the timed window")
     parser.add_argument("--profile-steps", type=int, default=5_000)
+    parser.add_argument("--n-envs", type=int, default=1, help="envs stepped together (HhP and the flat DQN alike)")
     parser.add_argument("--counts", type=int, nargs="+", default=[2, 32], help="sub-goal counts (subgoals)")
     parser.add_argument("--k", type=int, default=2, help=argparse.SUPPRESS)
     parser.add_argument("--hhp-kwargs", default="{}", help="JSON: HhP arguments over the entry's, e.g. '{\"subgoal_learner\": \"heads\"}'")

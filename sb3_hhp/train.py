@@ -10,15 +10,12 @@ TensorBoard logs and optuna tuning (``-optimize``) work for HhP unchanged:
   changes: an env id with no entry of its own in the YAML takes its domain's entry (``minigrid`` for any
   ``MiniGrid-*`` id, ``atari``, ``fetch``); unknown keys are refused before training; ``--oracle`` and a durable preference
   database in the run folder (``<log folder>/hhp/<ENV>_<run>/preferences.sqlite``) join the
-  hyperparameters; the callbacks count primitive env steps (below).
+  hyperparameters.
 
-**Frequencies count primitive steps.** SB3 calls a callback once per ``env.step`` of the algorithm's
-env; HhP's env is the semi-MDP over sub-goals, so a call is one *sub-goal choice*, which takes up to
-``max_subgoal_steps`` primitive steps. RL Zoo's ``EvalCallback`` (``--eval-freq``), ``CheckpointCallback``
-(``--save-freq``), the trials' evaluations of ``-optimize`` and the ``--progress`` bar would therefore
-count choices. Here they are triggered by ``model.num_timesteps`` instead, which counts primitive steps
-like ``-n``: ``--eval-freq 10000`` evaluates every 10,000 primitive steps (SB3's
-:class:`~stable_baselines3.common.callbacks.EveryNTimesteps` wraps them).
+**Frequencies count primitive steps.** HhP's loop steps all its envs at once and calls the callbacks once per
+step of the envs, as SB3's algorithms do, so RL Zoo's ``--eval-freq``, ``--save-freq``, the trials' evaluations
+of ``-optimize`` and the ``--progress`` bar count primitive steps like ``-n``, divided over ``n_envs`` as RL Zoo
+does for every algorithm.
 
 After training, the deterministic policy (with ``--stochastic-eval``, the stochastic one) is evaluated
 on fresh environments (built like the training env, by RL Zoo) whose seeds start at ``seed + 10_000``
@@ -49,13 +46,6 @@ from typing import Any, Optional
 
 import numpy as np
 import yaml
-from stable_baselines3.common.callbacks import (
-    BaseCallback,
-    CheckpointCallback,
-    EvalCallback,
-    EveryNTimesteps,
-    ProgressBarCallback,
-)
 
 #: the algorithm's name in RL Zoo (``--algo hhp``, ``<log folder>/hhp/``)
 ALGO_NAME = "hhp"
@@ -168,8 +158,9 @@ def validate_hyperparams(hyperparams: dict[str, Any], where: str) -> None:
                 f"{where}: unknown hyperparameter {key!r}{hint}. Valid keys: HhP's arguments {', '.join(valid)}; "
                 f"RL Zoo's {', '.join(sorted(ZOO_KEYS))}"
             )
-    if int(hyperparams.get("n_envs", 1)) != 1:
-        raise ConfigError(f"{where}: HhP trains on one env (its episodes are semi-MDP episodes): set n_envs: 1")
+    n_envs = hyperparams.get("n_envs", 1)
+    if isinstance(n_envs, bool) or not isinstance(n_envs, int) or n_envs < 1:
+        raise ConfigError(f"{where}: n_envs must be an integer >= 1, got {n_envs!r}")
     for key in ("normalize", "frame_stack", "vec_env_wrapper"):
         if hyperparams.get(key):
             raise ConfigError(
@@ -189,7 +180,7 @@ def sample_hhp_params(trial: Any, n_actions: int, n_envs: int, additional_args: 
 
     :param trial: the optuna trial
     :param n_actions: unused (RL Zoo's sampler signature)
-    :param n_envs: unused (HhP runs one env)
+    :param n_envs: unused (RL Zoo's sampler signature)
     :param additional_args: unused (RL Zoo's sampler signature)
     :return: HhP keyword arguments
     """
@@ -224,51 +215,6 @@ def register() -> None:
 
 
 # ---------------------------------------------------------------------- callbacks and experiment manager
-
-
-class EveryMultipleOfTimesteps(EveryNTimesteps):
-    """SB3's ``EveryNTimesteps``, triggered at the first step past each multiple of ``n_steps``: a sub-goal
-    choice takes many primitive steps, so counting from the last trigger would drift later each time (a run
-    of 3,000 steps evaluated every 1,500 would miss its second evaluation after a first one at 1,520)."""
-
-    def _on_step(self) -> bool:
-        if self.num_timesteps - self.last_time_trigger >= self.n_steps:
-            self.last_time_trigger = (self.num_timesteps // self.n_steps) * self.n_steps
-            return self._on_event()
-        return True
-
-
-def every_primitive_steps(callback: BaseCallback, n_steps: int) -> BaseCallback:
-    """Run ``callback`` every ``n_steps`` primitive env steps instead of every ``n`` sub-goal choices.
-
-    :param callback: an ``EvalCallback`` or ``CheckpointCallback`` (its own frequency is set to 1)
-    :param n_steps: primitive env steps between two runs (>= 1)
-    """
-    if isinstance(callback, EvalCallback):
-        callback.eval_freq = 1
-    elif isinstance(callback, CheckpointCallback):
-        callback.save_freq = 1
-    return EveryMultipleOfTimesteps(max(int(n_steps), 1), callback)
-
-
-def _primitive_step_trial_eval_callback() -> type:
-    from rl_zoo3.callbacks import TrialEvalCallback
-
-    class PrimitiveStepTrialEvalCallback(TrialEvalCallback):
-        """RL Zoo's trial evaluation (``-optimize``), every ``eval_freq`` primitive env steps."""
-
-        def __init__(self, *args: Any, eval_freq: int = 10_000, **kwargs: Any) -> None:
-            super().__init__(*args, eval_freq=1, **kwargs)
-            self.primitive_eval_freq = max(int(eval_freq), 1)
-            self.last_eval_step = 0
-
-        def _on_step(self) -> bool:
-            if self.num_timesteps - self.last_eval_step < self.primitive_eval_freq:
-                return True
-            self.last_eval_step = self.num_timesteps
-            return super()._on_step()
-
-    return PrimitiveStepTrialEvalCallback
 
 
 @contextlib.contextmanager
@@ -333,18 +279,6 @@ def _experiment_manager_class() -> type:
             pprint(saved_hyperparams)
             return hyperparams, saved_hyperparams
 
-        def create_callbacks(self) -> None:
-            super().create_callbacks()
-            from sb3_hhp.callbacks import PrimitiveStepProgressBar
-
-            for index, callback in enumerate(self.callbacks):
-                if type(callback) is ProgressBarCallback:
-                    self.callbacks[index] = PrimitiveStepProgressBar()
-                elif isinstance(callback, EvalCallback):
-                    self.callbacks[index] = every_primitive_steps(callback, callback.eval_freq)
-                elif isinstance(callback, CheckpointCallback):
-                    self.callbacks[index] = every_primitive_steps(callback, callback.save_freq)
-
         def setup_experiment(self) -> Any:
             try:
                 results = super().setup_experiment()
@@ -368,12 +302,6 @@ def _experiment_manager_class() -> type:
         def save_trained_model(self, model: Any) -> None:
             super().save_trained_model(model)
             self.trained_model = model
-
-        def hyperparameters_optimization(self) -> None:
-            import rl_zoo3.exp_manager
-
-            with _replaced(rl_zoo3.exp_manager, "TrialEvalCallback", _primitive_step_trial_eval_callback()):
-                super().hyperparameters_optimization()
 
     return HhPExperimentManager
 

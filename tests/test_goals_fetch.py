@@ -11,7 +11,7 @@ from stable_baselines3 import DDPG
 from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_hhp import HhP
-from sb3_hhp.hierarchy.env import _is_success
+from sb3_hhp.hierarchy.options import is_success as _is_success
 from sb3_hhp.goals import SUCCESS_KEY, FetchFlatObs, FetchGoalSpace, make_goal_space, wrap_env
 from sb3_hhp.oracles import FetchScriptedOracle, Label, Query
 

@@ -4,7 +4,7 @@ sub-goal set. Tiny settings throughout (5x5 MiniGrid, a few thousand primitive s
 
 import zipfile
 from collections import Counter
-from typing import Any
+from typing import Any, Optional
 
 import gymnasium as gym
 import minigrid  # noqa: F401  (registers the MiniGrid envs)
@@ -15,11 +15,12 @@ import torch as th
 from stable_baselines3 import DQN
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.vec_env import DummyVecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecFrameStack, VecNormalize
 
 from sb3_hhp import HhP
 from sb3_hhp.goals import MiniGridGoalSpace, wrap_env
 from sb3_hhp.hhp.hhp import COMPONENTS_FILE
+from sb3_hhp.hierarchy.options import EpisodeTrace
 from sb3_hhp.oracles import Label
 
 th.set_num_threads(1)
@@ -73,7 +74,7 @@ class CountingCallback(BaseCallback):
         self.starts += 1
 
     def _on_step(self) -> bool:
-        self.primitive_steps += int(self.locals["infos"][0]["primitive_steps"])
+        self.primitive_steps += self.training_env.num_envs
         return True
 
     def _on_training_end(self) -> None:
@@ -183,11 +184,11 @@ def test_evaluate_policy_works_unchanged(trained: HhP) -> None:
 
 def test_total_timesteps_counts_primitive_steps(trained: HhP) -> None:
     assert trained.num_timesteps >= 2_000
-    assert trained.num_timesteps == trained.hierarchy.num_steps
+    assert trained.num_timesteps == trained.options.num_steps
     # every primitive step was a subpolicy step or a step of the first, random episode
     subpolicy_steps = int(trained.subpolicies.own_steps.sum())
     assert 0 < subpolicy_steps < trained.num_timesteps
-    assert sum(trained.hierarchy.visits.values()) == trained.num_timesteps
+    assert sum(trained.subgoal_set.visits.values()) == trained.num_timesteps
     # far fewer meta-steps (sub-goal choices) than primitive steps
     assert trained.replay_buffer.size() < trained.num_timesteps
 
@@ -198,7 +199,7 @@ def test_learn_with_a_user_callback_and_progress_bar(capsys: pytest.CaptureFixtu
     model.learn(600, callback=callback, progress_bar=True)
     assert model.num_timesteps >= 600
     assert callback.starts == callback.ends == 1
-    assert callback.n_calls >= 1 and callback.n_calls < model.num_timesteps  # one call per sub-goal choice
+    assert callback.n_calls == model.num_timesteps  # one call per step of the (one) env, as in SB3's algorithms
     assert callback.primitive_steps == model.num_timesteps
     assert callback.num_timesteps == model.num_timesteps
     # a list of callbacks works too, and a plain function (SB3's ConvertCallback)
@@ -333,7 +334,7 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
     _assert_same_model(trained, with_env, obs)
     assert _predictions(with_env, sequence) == expected
     assert with_env.num_timesteps == trained.num_timesteps
-    assert with_env.hierarchy.visits == trained.hierarchy.visits
+    assert with_env.subgoal_set.visits == trained.subgoal_set.visits
     assert len(trained.recent_choices) > 0 and list(with_env.recent_choices) == list(trained.recent_choices)
     assert [r["chosen_recently"] for r in no_env.subgoal_records()] == [r["chosen_recently"] for r in trained.subgoal_records()]
 
@@ -341,7 +342,7 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
     before = with_env.num_timesteps
     with_env.learn(400, reset_num_timesteps=False)
     assert with_env.num_timesteps >= before + 400
-    assert with_env.num_timesteps == with_env.hierarchy.num_steps
+    assert with_env.options.num_steps == with_env.num_timesteps - before
     assert len(with_env.subgoals) >= len(trained.subgoals)
     assert with_env.query_selector.used <= with_env.query_selector.budget
     # and a model loaded without env can be given one
@@ -380,11 +381,12 @@ def test_env_forms(trained: HhP) -> None:
     for env in (EMPTY, gym.make(EMPTY), one):
         model = HhP("MlpPolicy", env, **{**TINY, "n_masks": 2})
         assert model.primitive_observation_space.shape == (9, 9, 3)
-    with pytest.raises(ValueError, match="single env"):
-        HhP("MlpPolicy", DummyVecEnv([lambda: wrap_env(gym.make(EMPTY))] * 2))
+    for wrapper in (VecNormalize, lambda venv: VecFrameStack(venv, 4)):
+        with pytest.raises(ValueError, match="cannot train under Vec.*Remove it"):
+            HhP("MlpPolicy", wrapper(DummyVecEnv([lambda: wrap_env(gym.make(EMPTY))] * 2)))
     with pytest.raises(ValueError, match="observation space"):
         trained.set_env(gym.make("MiniGrid-DoorKey-8x8-v0"))
-    assert trained.hierarchy.observation_space.shape == (9, 9, 3)  # left as it was
+    assert trained.options.venv.observation_space.shape == (9, 9, 3)  # left as it was
 
 
 def test_cartpole_error_names_the_fix() -> None:
@@ -454,11 +456,26 @@ def test_without_preferences_no_query_is_asked() -> None:
 
 def test_without_curiosity_no_intrinsic_reward() -> None:
     model = make_model(EMPTY, use_curiosity=False)
-    assert model.rnd is None and model.hierarchy.rnd is None and model.hierarchy.alpha == 0.0
+    assert model.rnd is None and model.options.rnd is None and model.subpolicies.replay.alpha == 0.0
     model.learn(600)
-    intrinsic = model.hierarchy.last_trace.intrinsic + model.hierarchy.trace.intrinsic
+    intrinsic = model._last_trace.intrinsic + model.options.traces[0].intrinsic
     assert len(intrinsic) > 0 and all(r == 0.0 for r in intrinsic)
     assert model.num_timesteps >= 600
+
+
+def run_option(model: HhP, goal: int, seed: Optional[int] = None, reset: bool = True) -> tuple[Any, list, EpisodeTrace]:
+    """Run sub-goal ``goal`` on env 0 until its option ends: (the option's end, the episodes that ended, the trace
+    of its primitive steps)."""
+    options = model.options
+    if reset:
+        options.seed(seed)
+        options.reset()
+    options.start(np.array([0]), np.array([goal]))
+    while True:
+        trace = options.traces[0]
+        ended, episodes = options.step()
+        if ended:
+            return ended[0], episodes, trace
 
 
 def _last_rows(model: HhP, steps: int) -> np.ndarray:
@@ -473,18 +490,19 @@ def test_shared_experience_is_relabelled_with_each_subgoals_eq5_reward() -> None
     terminated without reaching it, 0 otherwise."""
     model = make_model(EMPTY, use_curiosity=False)
     model.learn(600)
-    hierarchy, goal_space, replay = model.hierarchy, model.goal_space, model.subpolicies.replay
-    assert hierarchy.n_subgoals >= 2
-    hierarchy.reset(seed=3)
+    goal_space, replay = model.goal_space, model.subpolicies.replay
+    assert len(model.subgoals) >= 2
+    model.options.seed(3)
+    model.options.reset()
     size = replay.size()
-    _, _, terminated, _, info = hierarchy.step(0)
-    steps = info["primitive_steps"]
+    end, _, trace = run_option(model, 0, reset=False)
+    steps, terminated = end.steps, end.terminated
     assert replay.size() == min(replay.capacity, size + steps)
     rows = _last_rows(model, steps)
-    keys = hierarchy.trace.low_keys
+    keys = trace.low_keys[-steps:]
     rewards, terminal, _ = replay.rewards(rows, np.zeros_like(rows), np.ones_like(rows))  # for sub-goal 1
     for offset in range(steps):
-        reached = goal_space.achieved(keys[offset], hierarchy.subgoals[1].key)
+        reached = goal_space.achieved(keys[offset], model.subgoals[1].key)
         last = offset == steps - 1
         assert rewards[offset] == pytest.approx(1.0 if reached else (-1.0 if (terminated and last) else 0.0))
         assert bool(terminal[offset]) == (reached or (terminated and last))
@@ -499,12 +517,12 @@ def test_train_shared_gives_every_subpolicy_its_gradient_steps(train_shared: boo
     model = make_model(EMPTY, use_curiosity=False, subpolicy_kwargs=kwargs, train_shared=train_shared,
                        subgoal_learner="stacked")
     model.learn(600)
-    hierarchy, learners = model.hierarchy, model.subpolicies
-    assert hierarchy.n_subgoals >= 2
-    hierarchy.reset(seed=3)
+    learners = model.subpolicies
+    assert len(model.subgoals) >= 2
+    model.options.seed(3)
+    model.options.reset()
     ticks, updates = learners.ticks.copy(), learners.n_updates.copy()
-    _, _, _, _, info = hierarchy.step(0)
-    steps = info["primitive_steps"]
+    steps = run_option(model, 0, reset=False)[0].steps
     for goal_id in range(len(learners)):
         if goal_id == 0 or train_shared:
             assert learners.ticks[goal_id] == ticks[goal_id] + steps
@@ -518,18 +536,25 @@ def test_relabelled_step_at_the_time_limit_is_a_timeout() -> None:
     returns stop there instead of running on into the next episode, and the step is bootstrapped."""
     model = make_model(EMPTY, use_curiosity=False, subpolicy_kwargs={**TINY.get("subpolicy_kwargs", {}), "n_steps": 8})
     model.learn(600)
-    hierarchy, replay = model.hierarchy, model.subpolicies.replay
-    assert hierarchy.n_subgoals >= 2 and replay.n_steps == 8
-    hierarchy.env.unwrapped.max_steps = 2
+    replay = model.subpolicies.replay
+    assert len(model.subgoals) >= 2 and replay.n_steps == 8
+    model.options.venv.envs[0].unwrapped.max_steps = 2
+    achieved, n_goals = model.goal_space.achieved, len(model.subgoals)
+    found = None
     for seed in range(20):
-        hierarchy.reset(seed=seed)
-        _, _, terminated, truncated, info = hierarchy.step(0)
-        if truncated and not terminated and not model.goal_space.achieved(hierarchy.trace.low_keys[-1], hierarchy.subgoals[1].key):
+        for acting in range(n_goals):
+            end, _, trace = run_option(model, acting, seed=seed)
+            others = [goal for goal in range(n_goals) if goal != acting
+                      and not any(achieved(key, model.subgoals[goal].key) for key in trace.low_keys[-2:])]
+            if end.truncated and not end.terminated and end.steps == 2 and others:
+                found = others[0]
+                break
+        if found is not None:
             break
     else:
         pytest.fail("no episode was cut by the time limit")
     rows = _last_rows(model, 2)
-    rewards, terminal, cut = replay.rewards(rows, np.zeros(2, dtype=int), np.ones(2, dtype=int))
+    rewards, terminal, cut = replay.rewards(rows, np.zeros(2, dtype=int), np.full(2, found))
     assert cut[1] and not terminal[1] and rewards[1] == pytest.approx(0.0)
     assert not cut[0]
 
@@ -542,11 +567,10 @@ def test_active_subpolicy_stores_a_give_up_as_a_timeout_and_a_failed_episode_end
     center = carrying_a_key.shape[0] // 2
     carrying_a_key[center, center] = (OBJECT_TO_IDX["key"], 0, 0)  # "carrying a key": never reached in an empty room
     model = make_model(EMPTY, use_curiosity=False, discovery="none", max_subgoal_steps=3, subgoals=[carrying_a_key])
-    hierarchy, replay = model.hierarchy, model.subpolicies.replay
-    hierarchy.reset(seed=0)
+    replay, options = model.subpolicies.replay, model.options
     before = replay.size()
-    _, _, terminated, truncated, info = hierarchy.step(0)
-    assert not (terminated or truncated or info["subgoal_reached"]) and info["primitive_steps"] == 3
+    end, _, _ = run_option(model, 0, seed=0)
+    assert not (end.terminated or end.truncated or end.achieved) and end.steps == 3
     assert replay.size() == before + 3
     rows = _last_rows(model, 3)
     rewards, terminal, cut = replay.rewards(rows, np.zeros(3, dtype=int), np.zeros(3, dtype=int))
@@ -555,17 +579,19 @@ def test_active_subpolicy_stores_a_give_up_as_a_timeout_and_a_failed_episode_end
     # the give-up is the acting sub-goal's own time limit: not a cut for a sub-goal that did not act
     assert not replay.rewards(rows[-1:], np.zeros(1, dtype=int), np.ones(1, dtype=int))[2][0]
     # an episode that ends on the goal square without reaching the sub-goal: -1, terminal, not a timeout
-    base = hierarchy.env.unwrapped
+    egocentric = options.venv.envs[0].env  # under SB3's Monitor
+    base = egocentric.unwrapped
     for _ in range(20):
-        hierarchy.reset(seed=1)
+        options.seed(1)
+        options.reset()
         base.agent_pos = (base.width - 3, base.height - 2)  # left of the goal square
         base.agent_dir = 0
-        hierarchy._obs = hierarchy.env.observation(None)
+        options.obs = egocentric.observation(None)[None]
         model.subpolicies.act = lambda goals, obs, deterministic=False: np.asarray([2])  # forward
-        _, reward, terminated, _, info = hierarchy.step(0)
-        if terminated:
+        end, _, _ = run_option(model, 0, reset=False)
+        if end.terminated:
             break
-    assert terminated and reward > 0 and not info["subgoal_reached"]
+    assert end.terminated and end.extrinsic_return > 0 and not end.achieved
     rows = _last_rows(model, 1)
     rewards, terminal, cut = replay.rewards(rows, np.zeros(1, dtype=int), np.zeros(1, dtype=int))
     assert rewards[0] == pytest.approx(-1.0) and terminal[0] and not cut[0]
@@ -574,7 +600,7 @@ def test_active_subpolicy_stores_a_give_up_as_a_timeout_and_a_failed_episode_end
 def test_with_curiosity_intrinsic_rewards_are_not_all_zero() -> None:
     model = make_model(EMPTY)
     model.learn(400)
-    intrinsic = model.hierarchy.last_trace.intrinsic + model.hierarchy.trace.intrinsic
+    intrinsic = model._last_trace.intrinsic + model.options.traces[0].intrinsic
     assert len(intrinsic) > 0 and any(r > 0 for r in intrinsic)
 
 
@@ -615,20 +641,19 @@ def test_meta_controller_chooses_only_choosable_subgoals() -> None:
     """With mask_subgoals (the default) the meta-controller never picks a sub-goal that the goal space rules
     out in the state (already achieved; on MiniGrid, not a milestone), unless none is choosable there: in
     training (warm-up, exploration and greedy choices alike) and in predict."""
-    model = make_model(DOORKEY, learning_starts=100)
+    model = make_model(DOORKEY, learning_starts=100, seed=2)  # a run whose sub-goals are often choosable
     assert model.mask_subgoals
-    hierarchy, space = model.hierarchy, model.goal_space
-    choices, step = [], hierarchy.step
+    options, space = model.options, model.goal_space
+    choices, start = [], options.start
 
-    def checked_step(action):
-        if hierarchy.subgoals:
-            key = space.key(hierarchy._obs)
-            present = space.present(hierarchy._obs)
-            allowed = [space.choosable(key, goal.key, present) for goal in hierarchy.subgoals]
-            choices.append((any(allowed), allowed[int(action)]))
-        return step(action)
+    def checked_start(envs, goals):
+        for env, goal in zip(envs, goals):
+            key, present = space.key(options.obs[env]), space.present(options.obs[env])
+            allowed = [space.choosable(key, subgoal.key, present) for subgoal in model.subgoals]
+            choices.append((any(allowed), allowed[int(goal)]))
+        return start(envs, goals)
 
-    hierarchy.step = checked_step
+    options.start = checked_start
     model.learn(3_000)
     assert len(model.subgoals) >= 3
     assert sum(any_allowed for any_allowed, _ in choices) > 10
@@ -782,7 +807,7 @@ def test_subgoal_set_grows_past_the_initial_capacity() -> None:
 
     model.add_subgoal(goal_space.key(states[2]), states[2], None)
     assert int(model.action_space.n) == 4
-    assert int(model.hierarchy.action_space.n) == 4 and int(model.env.action_space.n) == 4
+    assert int(model.env.action_space.n) == 4
     assert model.valid_actions.tolist() == [True, True, True, False]
     with th.no_grad():
         q_after = model.q_net(model.policy.obs_to_tensor(obs)[0]).numpy()

@@ -44,30 +44,6 @@ def test_eval_seeds_never_reuse_training_seeds() -> None:
         eval_seeds(3, -1)
 
 
-def test_primitive_step_callbacks_fire_at_each_multiple() -> None:
-    """A sub-goal choice takes many primitive steps: the wrapped callback runs at the first choice past each
-    multiple of its period (1,520 then 3,010 for a period of 1,500), not a period after its last run."""
-    from types import SimpleNamespace
-
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    from sb3_hhp.train import every_primitive_steps
-
-    class Count(BaseCallback):
-        def _on_step(self) -> bool:
-            fired.append(self.num_timesteps)
-            return True
-
-    fired: list[int] = []
-    model = SimpleNamespace(num_timesteps=0, logger=None)
-    callback = every_primitive_steps(Count(), 1500)
-    callback.init_callback(model)
-    for timesteps in (700, 1400, 1520, 2200, 2990, 3010, 3500, 4400, 4600):
-        model.num_timesteps = timesteps
-        callback.on_step()
-    assert fired == [1520, 3010, 4600]
-
-
 @pytest.mark.slow
 def test_short_run_writes_summary_and_rl_zoo_outputs(tmp_path: Path) -> None:
     summary_path = tmp_path / "summary.json"
@@ -211,7 +187,7 @@ def test_unknown_yaml_key_is_refused_before_training(tmp_path: Path, capsys: pyt
 @pytest.mark.parametrize(
     "hyperparams, message",
     [
-        ({"n_envs": 4}, "n_envs: 1"),
+        ({"n_envs": 0}, "n_envs must be an integer >= 1"),
         ({"normalize": True}, "env_wrapper"),
         ({"frame_stack": 4}, "env_wrapper"),
         ({"seed": 3}, "--seed"),

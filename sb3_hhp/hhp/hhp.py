@@ -19,11 +19,14 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList, ConvertCallback, ProgressBarCallback
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
-from stable_baselines3.common.utils import get_device, should_collect_more_steps
+from stable_baselines3.common.utils import get_device, polyak_update
+from stable_baselines3.common.env_util import is_wrapped
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.preprocessing import maybe_transpose
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecTransposeImage
 
 from sb3_hhp.curiosity.rnd import RND
@@ -31,8 +34,11 @@ from sb3_hhp.discovery.csd import SubgoalDiscovery
 from sb3_hhp.dqn.dqn import DoubleDQN
 from sb3_hhp.goals import GoalSpace, make_goal_space, wrap_env
 from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, GridCNN, MlpPolicy, MultiInputPolicy
-from sb3_hhp.hierarchy.env import HierarchicalEnv
+from sb3_hhp.hhp.episodes import BetweenEpisodes
 from sb3_hhp.hierarchy.learners import SharedHeadsDQN, StackedDQN
+from sb3_hhp.hierarchy.options import (
+    EpisodeTrace, OptionRunner, Subgoal, SubgoalSet, SubgoalVecEnv, check_vec_env, env_view, option_terminal,
+)
 from sb3_hhp.hierarchy.subpolicies import PerGoalLearners, SubpolicySet
 from sb3_hhp.oracles.base import Oracle
 from sb3_hhp.oracles.registry import make_oracle
@@ -50,8 +56,10 @@ SUBGOAL_LEARNERS = {"heads": SharedHeadsDQN, "stacked": StackedDQN}
 COMPONENTS_FILE = "hhp_components.pt"  # not .pth: SB3 loads every .pth member as weights only
 
 
-def _single_env(env: Union[GymEnv, str, None]) -> Optional[gym.Env]:
-    """The one gym env under ``env`` (HhP runs one env: its episodes are semi-MDP episodes)."""
+def _vec_env(env: Union[GymEnv, str, None]) -> Optional[VecEnv]:
+    """The primitive envs under ``env`` as a VecEnv: an env id or a gym env becomes a DummyVecEnv of one env (with
+    the observation its goal space reads, and a Monitor for SB3's episode statistics); a VecEnv is used as it is
+    (each env already wrapped, e.g. ``make_vec_env(ENV, n_envs=8, wrapper_class=sb3_hhp.goals.wrap_env)``)."""
     if env is None:
         return None
     if isinstance(env, str):
@@ -59,19 +67,17 @@ def _single_env(env: Union[GymEnv, str, None]) -> Optional[gym.Env]:
             env = gym.make(env)
         except gym.error.Error as error:
             raise ValueError(f"Unknown env id {env!r}: {error}") from error
-    if isinstance(env, VecTransposeImage):  # SB3's own layout change (RL Zoo adds it for images): SB3 adds it again
+    if isinstance(env, VecTransposeImage):  # SB3's own layout change (RL Zoo adds it for images): HhP turns images itself
         env = env.venv
     if isinstance(env, VecEnv):
-        if not isinstance(env, DummyVecEnv) or env.num_envs != 1:
-            raise ValueError(
-                f"HhP needs a single env (or a DummyVecEnv of one env, without VecEnv wrappers), got {type(env).__name__}"
-                f" with {env.num_envs} envs"
-            )
-        env = env.envs[0]
-    return env
+        return check_vec_env(env)
+    if not isinstance(env, gym.Env):
+        raise ValueError(f"HhP needs a gymnasium env, an env id or a VecEnv, got {type(env).__name__}")
+    wrapped = wrap_env(env)
+    return DummyVecEnv([lambda: wrapped if is_wrapped(wrapped, Monitor) else Monitor(wrapped)])
 
 
-class HhP(DoubleDQN):
+class HhP(BetweenEpisodes, DoubleDQN):
     """Hierarchical learning from human preferences and curiosity.
 
     :param policy: the meta-controller's policy ("MlpPolicy", "CnnPolicy", "MultiInputPolicy" or a class)
@@ -264,23 +270,22 @@ class HhP(DoubleDQN):
         self.record_images = record_images
         self.subpolicy_policy = policy if isinstance(policy, str) else "MlpPolicy"
 
-        base_env = _single_env(env)
-        self.hierarchy: Optional[HierarchicalEnv] = None
-        if base_env is not None:
-            base_env = wrap_env(base_env)
-            self.goal_space = make_goal_space(goal_space, base_env)
-            self.primitive_observation_space = base_env.observation_space
-            self.primitive_action_space = base_env.action_space
-            self.hierarchy = HierarchicalEnv(
-                base_env, self.goal_space, subpolicies=None, rnd=None,  # type: ignore[arg-type]
-                alpha=alpha if use_curiosity else 0.0, max_subgoal_steps=max_subgoal_steps, capacity=subgoal_capacity,
-            )
+        venv = _vec_env(env)
+        self.subgoal_set = SubgoalSet()
+        self.options: Optional[OptionRunner] = None
+        if venv is not None:
+            probe = env_view(venv)
+            self.goal_space = make_goal_space(goal_space, probe)
+            self.primitive_observation_space = venv.observation_space
+            self.primitive_action_space = venv.action_space
+            self.options = OptionRunner(venv, self.goal_space, self.subgoal_set, learners=None, rnd=None,
+                                        max_subgoal_steps=max_subgoal_steps)
             policy_kwargs = self._meta_policy_kwargs(policy_kwargs)
             if policy == "CnnPolicy":
                 policy_kwargs = self._cnn_policy_kwargs(policy_kwargs)
         super().__init__(
             policy,
-            self.hierarchy,  # type: ignore[arg-type]
+            SubgoalVecEnv(self.options, subgoal_capacity) if self.options is not None else None,  # type: ignore[arg-type]
             learning_rate=learning_rate,
             buffer_size=buffer_size,
             learning_starts=learning_starts,
@@ -348,7 +353,12 @@ class HhP(DoubleDQN):
         )
 
     def _setup_model(self) -> None:
-        super()._setup_model()
+        # the replay R_H holds sub-goal choices, which end at different times in different envs: one stream
+        n_envs, self.n_envs = self.n_envs, 1
+        try:
+            super()._setup_model()
+        finally:
+            self.n_envs = n_envs
         device = get_device(self.device)
         obs_space = self.primitive_observation_space
         self.rnd = RND(obs_space, device=device, seed=self.seed, **self.rnd_kwargs) if self.use_curiosity else None
@@ -370,7 +380,8 @@ class HhP(DoubleDQN):
             self.subpolicies = SUBGOAL_LEARNERS[getattr(self, "subgoal_learner", "stacked")](
                 obs_space, self.primitive_action_space, self.goal_space.achieved, policy=self.subpolicy_policy,
                 subpolicy_kwargs=self.subpolicy_kwargs, alpha=alpha, exploration_steps=self.subpolicy_exploration_steps,
-                share_experience=self.share_experience, train_shared=self.train_shared, device=device, seed=self.seed,
+                share_experience=self.share_experience, train_shared=self.train_shared, n_envs=self.n_envs,
+                device=device, seed=self.seed,
             )
         else:
             self.subpolicies = PerGoalLearners(
@@ -396,14 +407,15 @@ class HhP(DoubleDQN):
         self.recent_choices: deque = deque(maxlen=1_000)
         self.last_predictor_stats: dict[str, float] = {}
         self.last_confidences: np.ndarray = np.zeros(0)
-        if self.hierarchy is not None:
-            self._attach(self.hierarchy)
+        self._last_trace = EpisodeTrace()
+        self._rollout_episodes = 0
+        if self.options is not None:
+            self._attach(self.options)
 
-    def _attach(self, hierarchy: HierarchicalEnv) -> None:
-        hierarchy.subpolicies = self.subpolicies
-        hierarchy.rnd = self.rnd
-        hierarchy.record_images = bool(self.record_images)
-        if hierarchy.n_subgoals == 0 and not hierarchy.subgoals:
+    def _attach(self, options: OptionRunner) -> None:
+        options.learners, options.rnd, options.subgoals = self.subpolicies, self.rnd, self.subgoal_set
+        options.record_images = bool(self.record_images)
+        if not self.subgoal_set.goals:
             for goal_obs in self.initial_subgoals:
                 self.add_subgoal(self.goal_space.key(goal_obs), goal_obs, None, source="user")
         self._sync_action_space()
@@ -422,24 +434,29 @@ class HhP(DoubleDQN):
 
     # ------------------------------------------------------------------ the sub-goal set
     @property
-    def subgoals(self) -> list:
-        return self.hierarchy.subgoals if self.hierarchy is not None else self._loaded_subgoals
+    def subgoals(self) -> list[Subgoal]:
+        """The sub-goal set G, in the order of the meta-controller's actions."""
+        return self.subgoal_set.goals
 
     def add_subgoal(self, key: Any, obs: np.ndarray, image: Optional[np.ndarray], source: str = "csd") -> int:
-        """Add a sub-goal (and its subpolicy); the meta-controller's head grows when full (DESIGN.md gap 4)."""
-        assert self.hierarchy is not None
-        goal_id = self.hierarchy.add_subgoal(key, obs, image, source)
+        """Add a sub-goal (and its learner); the meta-controller's head doubles when full (DESIGN.md gap 4)."""
+        goal_id = self.subgoal_set.add(key, obs, image, self.num_timesteps, source)
+        self.subpolicies.add(key)
         self._sync_action_space()
         return goal_id
 
     def _sync_action_space(self) -> None:
         """Match the meta-controller's head and valid-action mask to the sub-goal set."""
         n_goals = len(self.subgoals)
-        capacity = self.hierarchy.action_space.n if self.hierarchy is not None else self.action_space.n
+        capacity = int(self.action_space.n)
+        while capacity < n_goals:
+            capacity *= 2
         if capacity > self.action_space.n:
-            self.resize_action_space(int(capacity))
-            if self.env is not None:
-                self.env.action_space = self.action_space
+            self.resize_action_space(capacity)
+        if self.env is not None and self.env.action_space != self.action_space:
+            self.env.action_space = self.action_space
+            if isinstance(self.env, VecTransposeImage):
+                self.env.venv.action_space = self.action_space
         mask = np.arange(self.action_space.n) < n_goals
         self.valid_actions = mask if n_goals > 0 else None
         self._mask_cache = {}
@@ -488,10 +505,11 @@ class HhP(DoubleDQN):
         return np.stack([goal.obs for goal in self.subgoals])
 
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
-        """N_opt meta-controller updates (Algorithm 1 lines 30-34), once the meta buffer holds a batch."""
+        """N_opt meta-controller updates for each episode that just ended (Algorithm 1 lines 30-34), once the meta
+        buffer holds a batch."""
         if self.replay_buffer is None or self.replay_buffer.size() < batch_size:
             return
-        super().train(gradient_steps, batch_size)
+        super().train(gradient_steps * max(1, self._rollout_episodes), batch_size)
 
     # ------------------------------------------------------------------ rewards (eq. 3)
     def _rewards(self, replay_data: Any) -> th.Tensor:
@@ -525,14 +543,13 @@ class HhP(DoubleDQN):
         return scores[np.arange(n_states), goals] - scores.mean(axis=1)
 
     # ------------------------------------------------------------------ acting
-    def _sample_action(self, learning_starts: int, action_noise: Any = None, n_envs: int = 1) -> tuple[np.ndarray, np.ndarray]:
-        if self.valid_actions is None:  # no sub-goal yet: HierarchicalEnv explores at random
-            action = np.zeros(n_envs, dtype=np.int64)
-        elif self.num_timesteps < learning_starts:
-            action = self._random_actions(n_envs, self.action_mask(self._last_obs))
-        else:
-            action, _ = DoubleDQN.predict(self, self._last_obs, deterministic=False)
-        return action, action
+    def choose_subgoals(self, obs: np.ndarray, learning_starts: int = 0, deterministic: bool = False) -> np.ndarray:
+        """The meta-controller's sub-goal for each state of ``obs`` (env layout), in one batched forward: at random
+        among the choosable sub-goals before ``learning_starts``, else epsilon-greedy (Algorithm 1 line 11)."""
+        if self.num_timesteps < learning_starts and not deterministic:
+            return self._random_actions(len(obs), self.action_mask(obs))
+        actions, _ = DoubleDQN.predict(self, obs, deterministic=deterministic)
+        return np.asarray(actions, dtype=np.int64).reshape(len(obs))
 
     def collect_rollouts(
         self,
@@ -544,39 +561,63 @@ class HhP(DoubleDQN):
         learning_starts: int = 0,
         log_interval: Optional[int] = None,
     ) -> RolloutReturn:
-        """SB3's loop over one episode of sub-goal choices (Algorithm 1 lines 9-23); ``num_timesteps``
-        advances by the primitive steps each choice took."""
+        """Run the option loop on every env (Algorithm 1 lines 9-23) until an episode ends, then the work between
+        episodes (lines 24-29, 35) for each one that ended. ``num_timesteps`` counts primitive steps of all envs;
+        callbacks are called once per step of the envs, as SB3's own algorithms do."""
+        options = self.options
+        assert options is not None and options.obs is not None
         self.policy.set_training_mode(False)
         num_collected_steps, num_collected_episodes = 0, 0
         callback.on_rollout_start()
-        while should_collect_more_steps(train_freq, num_collected_steps, num_collected_episodes):
-            actions, buffer_actions = self._sample_action(learning_starts, None, env.num_envs)
-            observations = self._last_obs
-            new_obs, rewards, dones, infos = env.step(actions)
-            self.num_timesteps += int(infos[0]["primitive_steps"])
+        while num_collected_episodes == 0:
+            waiting = options.waiting()
+            if len(waiting):  # line 11, every env whose option ended in one forward
+                goals = self.choose_subgoals(options.obs[waiting], learning_starts)
+                options.start(waiting, goals)
+                self.recent_choices.extend(int(goal) for goal in goals)
+            ended, episodes = options.step()
+            self.num_timesteps += options.num_envs
             num_collected_steps += 1
+            for option in ended:
+                self._store_choice(replay_buffer, option)
             callback.update_locals(locals())
             if not callback.on_step():
-                return RolloutReturn(num_collected_steps, num_collected_episodes, continue_training=False)
-            self._update_info_buffer(infos, dones)
-            if infos[0].get("random_episode"):
-                self._last_obs = new_obs  # nothing to learn from: no sub-goal was chosen
-            else:
-                goal = int(actions[0])
-                self.recent_choices.append(goal)
-                if self.use_preferences and len(self.predictor) > 0:  # line 12: b_t, for sigma(R_p)
-                    bonus = self.preference_bonus(observations, np.asarray([goal]))
-                    self.return_normalizer.update(bonus)
-                self._store_transition(replay_buffer, buffer_actions, new_obs, rewards, dones, infos)
+                return RolloutReturn(num_collected_steps * options.num_envs, num_collected_episodes, continue_training=False)
             self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
-            self._on_step()
-            if dones[0]:
+            for episode in episodes:
                 num_collected_episodes += 1
                 self._episode_num += 1
+                self._update_info_buffer([episode.info], np.array([True]))
+                self._last_trace = episode.trace
+                self.after_episode(episode.trace)  # lines 24-29, 35
                 if log_interval is not None and self._episode_num % log_interval == 0:
                     self.dump_logs()
+        self._rollout_episodes = num_collected_episodes
         callback.on_rollout_end()
-        return RolloutReturn(num_collected_steps, num_collected_episodes, True)
+        return RolloutReturn(num_collected_steps * options.num_envs, num_collected_episodes, True)
+
+    def _store_choice(self, replay_buffer: ReplayBuffer, option: Any) -> None:
+        """One sub-goal choice that ended into R_H (line 23): (s, g, R_e, s', terminated), a time limit as a
+        timeout; the preference bonus of the choice updates sigma(R_p) (line 12)."""
+        obs = maybe_transpose(option.obs[None], self.observation_space)
+        next_obs = maybe_transpose(option.next_obs[None], self.observation_space)
+        done = option.terminated or option.truncated
+        info = {"TimeLimit.truncated": option.truncated and not option.terminated}
+        replay_buffer.add(obs, next_obs, np.array([[option.goal]]), np.array([option.extrinsic_return], dtype=np.float32),
+                          np.array([done]), [info])
+        if self.use_preferences and len(self.predictor) > 0:
+            self.return_normalizer.update(self.preference_bonus(option.obs[None], np.asarray([option.goal])))
+        self._on_step()
+
+    def _on_step(self) -> None:
+        """After each sub-goal choice stored: the target network every ``target_update_interval`` choices, and
+        the exploration rate (SB3's DQN divides the interval by the number of envs; choices are counted here)."""
+        self._n_calls += 1
+        if self._n_calls % max(self.target_update_interval, 1) == 0:
+            polyak_update(self.q_net.parameters(), self.q_net_target.parameters(), self.tau)
+            polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
+        self.exploration_rate = self.exploration_schedule(self._current_progress_remaining)
+        self.logger.record("rollout/exploration_rate", self.exploration_rate)
 
     def _env_layout(self, obs: np.ndarray) -> np.ndarray:
         """Observations in the env's layout: images that come channel first (an env wrapped in SB3's
@@ -614,9 +655,12 @@ class HhP(DoubleDQN):
         renew = []
         for i in range(n_envs):
             goal = goals[i]
-            if goal < 0 or steps[i] >= self.max_subgoal_steps:
+            if goal < 0:
                 renew.append(i)
-            elif self.goal_space.achieved(self.goal_space.key(batch[i]), subgoals[goal].key) and steps[i] > 0:
+                continue
+            achieved, gave_up = option_terminal(self.goal_space, self.goal_space.key(batch[i]), subgoals[goal].key,
+                                                int(steps[i]), self.max_subgoal_steps)
+            if gave_up or (achieved and steps[i] > 0):
                 renew.append(i)
         if renew:
             chosen, _ = DoubleDQN.predict(self, batch[renew], deterministic=deterministic)
@@ -643,16 +687,12 @@ class HhP(DoubleDQN):
 
     # ------------------------------------------------------------------ learning
     def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
-        from sb3_hhp.callbacks import hhp_callbacks, PrimitiveStepProgressBar
-
         if isinstance(callback, list):
             callback = CallbackList(callback)
         if not isinstance(callback, BaseCallback):
             callback = ConvertCallback(callback)
-        callbacks: list[BaseCallback] = [*hhp_callbacks(self), callback]
         if progress_bar:
-            callbacks.append(PrimitiveStepProgressBar())
-        callback = CallbackList(callbacks)
+            callback = CallbackList([callback, ProgressBarCallback()])
         callback.init_callback(self)
         return callback
 
@@ -666,7 +706,7 @@ class HhP(DoubleDQN):
         progress_bar: bool = False,
     ) -> SelfHhP:
         """Train for ``total_timesteps`` primitive env steps (Algorithm 1)."""
-        if self.hierarchy is None:
+        if self.options is None:
             raise ValueError("This model has no env: pass one with HhP.load(path, env=env) or model.set_env(env)")
         horizon = total_timesteps + (0 if reset_num_timesteps else self.num_timesteps)
         self.query_selector.set_total_timesteps(int(self.query_horizon or horizon))
@@ -702,8 +742,8 @@ class HhP(DoubleDQN):
         if len(self.last_confidences):
             self.logger.record("hhp/mean_confidence", float(np.mean(self.last_confidences)))
         self.logger.record("hhp/query_threshold", self.query_selector.current_threshold)
-        if self.hierarchy is not None and self.hierarchy.last_trace.intrinsic:
-            self.logger.record("hhp/mean_intrinsic_reward", float(np.mean(self.hierarchy.last_trace.intrinsic)))
+        if self._last_trace.intrinsic:
+            self.logger.record("hhp/mean_intrinsic_reward", float(np.mean(self._last_trace.intrinsic)))
         self.logger.record("hhp/sigma_preference_return", self.return_normalizer.sigma)
         for goal_id in range(len(self.subpolicies)):
             rate = self.subpolicies.success_rate(goal_id)
@@ -716,7 +756,7 @@ class HhP(DoubleDQN):
         counts = Counter(self.recent_choices)
         records = []
         goal_obs = self.predictor_inputs(self.goal_obs) if self.subgoals else None
-        states = np.stack(list(self.hierarchy.last_trace.high_obs)) if self.hierarchy and self.hierarchy.last_trace.high_obs else None
+        states = np.stack(self._last_trace.high_obs) if self._last_trace.high_obs else None
         states = None if states is None else self.predictor_inputs(states)
         for goal_id, goal in enumerate(self.subgoals):
             mean_score = None
@@ -739,9 +779,9 @@ class HhP(DoubleDQN):
     def _excluded_save_params(self) -> list[str]:
         return [
             *super()._excluded_save_params(),
-            "hierarchy", "rnd", "predictor", "query_selector", "return_normalizer", "subpolicies", "discovery",
+            "options", "subgoal_set", "_last_trace", "rnd", "predictor", "query_selector", "return_normalizer", "subpolicies", "discovery",
             "store", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
-            "last_confidences", "consumed_query_ids", "_loaded_subgoals", "initial_subgoals", "_mask_cache", "_present_cache",
+            "last_confidences", "consumed_query_ids", "initial_subgoals", "_mask_cache", "_present_cache",
         ]
 
     def components_state(self) -> dict[str, Any]:
@@ -752,7 +792,7 @@ class HhP(DoubleDQN):
         return {
             "format": "sb3_hhp.HhP",
             "subgoals": [asdict(goal) for goal in self.subgoals],
-            "visits": dict(self.hierarchy.visits) if self.hierarchy is not None else self._loaded_visits,
+            "visits": dict(self.subgoal_set.visits),
             "subpolicies": self.subpolicies.state_dict(),
             "predictor": self.predictor.state_dict(),
             "rnd": self.rnd.state_dict() if self.rnd is not None else None,
@@ -764,18 +804,12 @@ class HhP(DoubleDQN):
         }
 
     def load_components_state(self, state: dict[str, Any]) -> None:
-        from sb3_hhp.hierarchy.env import Subgoal
-
         if not isinstance(state, dict) or state.get("format") != "sb3_hhp.HhP":
             raise ValueError("This file holds no HhP components: it was not saved by sb3_hhp.HhP.save")
-        subgoals = [Subgoal(**goal) for goal in state["subgoals"]]
         self.subpolicies.load_state_dict(state["subpolicies"])
-        if self.hierarchy is not None:
-            self.hierarchy.subgoals = subgoals
-            self.hierarchy.visits = Counter(state["visits"])
-            self.hierarchy.action_space = spaces.Discrete(int(self.action_space.n))
-        self._loaded_subgoals = subgoals
-        self._loaded_visits = state["visits"]
+        self.subgoal_set.goals[:] = [Subgoal(**goal) for goal in state["subgoals"]]
+        self.subgoal_set.visits.clear()
+        self.subgoal_set.visits.update(state["visits"])
         self.predictor.load_state_dict(state["predictor"])
         if self.rnd is not None and state["rnd"] is not None:
             self.rnd.load_state_dict(state["rnd"])
@@ -840,24 +874,23 @@ class HhP(DoubleDQN):
         return model
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
-        """Attach a (new) env: it is wrapped into a HierarchicalEnv around the current sub-goal set."""
-        base_env = _single_env(env)
-        assert base_env is not None
-        base_env = wrap_env(base_env)
-        if base_env.observation_space != self.primitive_observation_space:
+        """Attach (new) envs: an env, an env id or a VecEnv of any number of envs, whose sub-goals are the model's."""
+        venv = _vec_env(env)
+        assert venv is not None
+        if venv.observation_space != self.primitive_observation_space:
             raise ValueError(
-                f"The env's observation space {base_env.observation_space} differs from the model's "
+                f"The env's observation space {venv.observation_space} differs from the model's "
                 f"{self.primitive_observation_space}"
             )
-        hierarchy = HierarchicalEnv(
-            base_env, self.goal_space, subpolicies=self.subpolicies, rnd=self.rnd,
-            alpha=self.alpha if self.use_curiosity else 0.0, max_subgoal_steps=self.max_subgoal_steps,
-            capacity=int(self.action_space.n),
-        )
-        hierarchy.subgoals = list(self.subgoals)
-        # the visits of the env in use are the newest; a model loaded without an env has only the saved ones
-        hierarchy.visits = Counter(self.hierarchy.visits if self.hierarchy is not None else getattr(self, "_loaded_visits", {}))
-        hierarchy.num_steps = self.num_timesteps
-        self.hierarchy = hierarchy
-        self._attach(hierarchy)
-        super().set_env(hierarchy, force_reset=force_reset)
+        self.options = OptionRunner(venv, self.goal_space, self.subgoal_set, self.subpolicies, self.rnd,
+                                    max_subgoal_steps=self.max_subgoal_steps)
+        if venv.num_envs != getattr(self.subpolicies, "n_envs", venv.num_envs):
+            self.subpolicies.set_n_envs(venv.num_envs)
+        self._attach(self.options)
+        view = SubgoalVecEnv(self.options, int(self.action_space.n))
+        n_envs, self.n_envs = self.n_envs, venv.num_envs  # SB3 refuses a different number of envs; HhP takes any
+        try:
+            super().set_env(view, force_reset=force_reset)
+        except Exception:
+            self.n_envs = n_envs
+            raise

@@ -146,13 +146,14 @@ class StackedDQN:
         lower_bound = bool(replay_kwargs.pop("off_policy_lower_bound", False))
         if replay_kwargs:
             raise ValueError(f"Unknown subpolicy replay_buffer_kwargs {sorted(replay_kwargs)}: only off_policy_lower_bound")
-        self.replay = SharedReplay(
-            int(kw["buffer_size"]), observation_space, action_space, achieved, n_envs=n_envs, alpha=alpha, gamma=self.gamma,
-            n_steps=int(kw["n_steps"]), lower_bound=lower_bound, share_experience=share_experience,
-            shared_priorities=self._shared_priorities,
+        self._replay_kwargs = dict(
+            capacity=int(kw["buffer_size"]), observation_space=observation_space, action_space=action_space,
+            achieved=achieved, alpha=alpha, gamma=self.gamma, n_steps=int(kw["n_steps"]), lower_bound=lower_bound,
+            share_experience=share_experience, shared_priorities=self._shared_priorities,
             priority_alpha=kw["prioritized_replay_alpha"], priority_beta=kw["prioritized_replay_beta"],
             priority_eps=kw["prioritized_replay_eps"], seed=seed,
         )
+        self.replay = SharedReplay(n_envs=n_envs, **self._replay_kwargs)
         # SB3's CNN reads channel-first images: the env's channel-last frames are turned when they reach a network
         self._transpose = is_image_space(observation_space) and not is_image_space_channels_first(observation_space)
         net_space = observation_space
@@ -269,6 +270,18 @@ class StackedDQN:
         self.n_updates = np.array(state["n_updates"], dtype=np.int64)
         self.recent = [deque(r, maxlen=100) for r in state["recent"]]
         self.successes, self.attempts = list(state["successes"]), list(state["attempts"])
+
+    @property
+    def n_envs(self) -> int:
+        return self.replay.n_envs
+
+    def set_n_envs(self, n_envs: int) -> None:
+        """Step ``n_envs`` envs from now on: a new, empty replay with a stream per env (as SB3's ``set_env`` starts
+        from an empty buffer after ``load``), the sub-goals kept."""
+        replay = SharedReplay(n_envs=n_envs, **self._replay_kwargs)
+        for key in self.replay.goal_keys:
+            replay.add_goal(key)
+        self.replay = replay
 
     def exploration_rate(self, goal: int) -> float:
         """Epsilon of sub-goal ``goal``: linear from the initial to the final value over ``exploration_steps`` own steps."""

@@ -1,0 +1,135 @@
+"""HhP's work between episodes (Algorithm 1, lines 24-29 and 35), as named steps of the algorithm.
+
+After each finished episode, before the meta-controller's N_opt updates, :meth:`BetweenEpisodes.after_episode`
+runs, in Algorithm 1's order:
+
+- :meth:`~BetweenEpisodes.ask_preferences`: returns of the episode's choices (line 24), MC-dropout confidence
+  (line 25), questions for the least confident choices within the budget (line 26);
+- :meth:`~BetweenEpisodes.receive_answers`: answers into the durable store and the predictor, 4 epochs of
+  Bradley-Terry training when labels arrived (line 27);
+- :meth:`~BetweenEpisodes.discover_subgoals`: the first sub-goal (line 5) and CSD (line 29);
+- :meth:`~BetweenEpisodes.update_curiosity`: the RND update (line 35; Omega refreshes every T steps as they pass);
+- the sub-goal gallery for the labeling app, every ``gallery_every`` episodes.
+"""
+
+from typing import Any
+
+import numpy as np
+import torch as th
+
+from sb3_hhp.hierarchy.options import EpisodeTrace
+from sb3_hhp.oracles.base import Query
+
+
+def _key_json(key: object) -> list:
+    return list(key) if isinstance(key, tuple) else [key]
+
+
+class BetweenEpisodes:
+    """The between-episode steps of :class:`~sb3_hhp.HhP` (a mixin: they read the model's components)."""
+
+    #: episodes between two writes of the sub-goal gallery into the store (when it is a file)
+    gallery_every = 10
+
+    def after_episode(self: Any, trace: EpisodeTrace) -> None:
+        """Everything Algorithm 1 does between an episode and the meta-controller's updates."""
+        self.ask_preferences(trace)
+        self.receive_answers()
+        self.discover_subgoals(trace)
+        self.update_curiosity(trace)
+        self._episodes_done = getattr(self, "_episodes_done", 0) + 1
+        if self.preference_db is not None and self.subgoals and self._episodes_done % self.gallery_every == 0:
+            self.store.put_subgoals(self.subgoal_records())
+
+    # ------------------------------------------------------------------ preferences (lines 24-27)
+    def ask_preferences(self: Any, trace: EpisodeTrace) -> None:
+        """Ask the oracle about the episode's least confident sub-goal choices, within the budget."""
+        oracle = self.oracle
+        if oracle is None or not trace.high_goals:
+            return
+        states, goals, goal_obs = np.stack(trace.high_obs), np.asarray(trace.high_goals), self.goal_obs
+        if hasattr(oracle, "observe"):  # the synthetic oracle learns average returns from experience
+            returns = np.cumsum(np.asarray(trace.high_returns)[::-1])[::-1]  # line 24, undiscounted
+            oracle.observe(states[: len(returns)], goal_obs[goals[: len(returns)]], returns)
+            oracle.train()
+        if self.query_selector.remaining == 0 or len(self.subgoals) < 2:
+            return
+        confidences = self.predictor.confidence(self.predictor_inputs(states), self.predictor_inputs(goal_obs[goals]))  # line 25, eq. 4
+        self.last_confidences = confidences
+        with th.no_grad():
+            q_values = self.q_net(self.policy.obs_to_tensor(states)[0]).cpu().numpy()
+        q_values[~np.broadcast_to(self.action_mask(states), q_values.shape)] = -np.inf  # g2 among the choosable sub-goals
+        selected = self.query_selector.select(confidences, goals, q_values, num_timesteps=self.num_timesteps)
+        queries = [self._query(trace, states, goals, index, int(second)) for index, second in selected]  # line 26
+        for query in queries:  # durable before anyone answers
+            self.store.add_query(query)
+            self.pending_queries[query.query_id] = query
+        if queries:
+            oracle.submit(queries)
+
+    def _query(self: Any, trace: EpisodeTrace, states: np.ndarray, goals: np.ndarray, index: int, second: int) -> Query:
+        goal_space, subgoals = self.goal_space, self.subgoals
+        first = int(goals[index])
+        state_image = trace.high_images[index] if index < len(trace.high_images) else None
+        if state_image is None:
+            state_image = goal_space.image_of(states[index])
+        return Query(
+            state=states[index], goal1=first, goal2=second,
+            goal1_obs=subgoals[first].obs, goal2_obs=subgoals[second].obs,
+            state_image=state_image, goal1_image=subgoals[first].image, goal2_image=subgoals[second].image,
+            info={
+                "state": trace.high_privileged[index],
+                "goal1_key": _key_json(subgoals[first].key),
+                "goal2_key": _key_json(subgoals[second].key),
+                "goal1_name": goal_space.describe(subgoals[first].key),
+                "goal2_name": goal_space.describe(subgoals[second].key),
+                **goal_space.query_info(states[index], subgoals[first].obs, subgoals[second].obs),
+            },
+        )
+
+    def receive_answers(self: Any) -> int:
+        """Store the oracle's new answers, feed them to the predictor and train it when labels arrived
+        (line 27: 4 epochs on R); the number of labels that taught something."""
+        if self.oracle is None:
+            return 0
+        new_labels = 0
+        for answer in self.oracle.collect():
+            if answer.query_id in self.consumed_query_ids:
+                continue
+            query = self.pending_queries.pop(answer.query_id, None) or self.store.get_query(answer.query_id)
+            if self.store.get_answer(answer.query_id) is None:
+                self.store.add_answer(answer.query_id, answer.label, answer.annotator, answer.answered_at)
+            self.consumed_query_ids.add(answer.query_id)
+            new_labels += int(self.add_preference(query, answer.label))
+        if new_labels:
+            self.last_predictor_stats = self.predictor.train()
+        return new_labels
+
+    # ------------------------------------------------------------------ sub-goals (lines 5 and 29)
+    def discover_subgoals(self: Any, trace: EpisodeTrace) -> list[int]:
+        """The first sub-goal (a random state of the first episode, line 5), then CSD's discoveries (line 29);
+        the ids of the sub-goals added."""
+        if not trace.low_obs:
+            return []
+        goal_space = self.goal_space
+        states = np.stack(trace.low_obs)
+        if len(self.subgoals) == 0:  # line 5: a random visited state
+            index = int(self.discovery.rng.integers(len(states)))
+            return [self.add_subgoal(trace.low_keys[index], states[index], goal_space.image_of(states[index]), source="random")]
+        if self.discovery_strategy == "none" or trace.random:
+            return []
+        rho = None
+        if self.discovery.strategy == "csd":
+            rho = self.rnd.novelty_progress(states) if self.rnd is not None else np.zeros(len(states))
+        chosen = self.discovery.select(states, trace.low_keys, rho, self.subgoal_set.visits,
+                                       self.subgoal_set.keys, self.goal_obs)
+        return [self.add_subgoal(trace.low_keys[index], states[index], goal_space.image_of(states[index]),
+                                 source=self.discovery.strategy) for index in chosen]
+
+    # ------------------------------------------------------------------ curiosity (line 35)
+    def update_curiosity(self: Any, trace: EpisodeTrace, n_epochs: int = 1) -> None:
+        """Train the RND predictor on the episode's states."""
+        if self.rnd is None or not trace.low_obs:
+            return
+        loss = self.rnd.update(np.stack(trace.low_obs), n_epochs=n_epochs)
+        self.logger.record("hhp/rnd_loss", loss)
