@@ -396,6 +396,8 @@ def summarize(
         "std_return": float(returns.std()) if len(returns) else None,
         "mean_episode_length": float(np.mean(results["lengths"])) if len(returns) else None,
         "queries_used": int(model.query_selector.used),
+        "queries_asked": int(model.store.count_asked()),
+        "queries_distinct": len(model.asked_signatures),
         "query_budget": int(model.query_selector.budget),
         "num_subgoals": len(subgoals),
         "subgoals": subgoals,
@@ -435,6 +437,11 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--stochastic-eval", action="store_true",
         help="evaluate the stochastic policy at the end (as RL Zoo does for MiniGrid, where greedy policies can loop)",
+    )
+    parser.add_argument(
+        "--eval-both", action="store_true",
+        help="evaluate the deterministic and the stochastic policy, on the same seeds (success_rate_deterministic, "
+             "success_rate_stochastic in the summary; success_rate is the one --stochastic-eval picks)",
     )
     parser.add_argument(
         "--periodic-eval-episodes", type=int, default=5,
@@ -554,6 +561,12 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
     results = evaluate(model, lambda n: manager.create_envs(n, eval_env=True, no_log=True), seeds, deterministic)
     summary = summarize(model, env_id, manager.seed, seeds, results, manager.train_seconds)
     summary["deterministic_eval"] = deterministic
+    if options.eval_both:
+        other = evaluate(model, lambda n: manager.create_envs(n, eval_env=True, no_log=True), seeds, not deterministic)
+        for mode, result in ((deterministic, results), (not deterministic, other)):
+            name = "deterministic" if mode else "stochastic"
+            summary[f"success_rate_{name}"] = float(np.mean(result["successes"])) if len(result["successes"]) else None
+            summary[f"mean_return_{name}"] = float(np.mean(result["returns"])) if len(result["returns"]) else None
     summary["log_path"] = manager.save_path
     summary["model_path"] = os.path.join(manager.save_path, f"{manager.env_name}.zip")
     summary["config"] = manager.config

@@ -731,7 +731,7 @@ def test_meta_controller_reads_goal_space_features_or_observations() -> None:
 # ---------------------------------------------------------------------------- resume
 
 
-@pytest.mark.parametrize("budget, first_steps", [(10, 1_000), (2_000, 1_000)])
+@pytest.mark.parametrize("budget, first_steps", [(10, 2_000), (2_000, 1_000)])
 def test_resume_with_a_preference_database(tmp_path, budget: int, first_steps: int) -> None:
     """Budget 10 is spent before the save (the resumed run must ask nothing more); budget 2000 is not
     (the resumed run asks more, counting what was asked before the save). t_qry = 0: every tuple qualifies, and
@@ -765,6 +765,13 @@ def test_resume_with_a_preference_database(tmp_path, budget: int, first_steps: i
     labelled = sum(answer.label != Label.INCOMPARABLE for answer in answers)
     assert len(loaded.predictor) == labelled  # every answered label is in the predictor, once
     assert loaded.consumed_query_ids == {answer.query_id for answer in answers}
+    # no question was asked twice, before or after the resume: (the state as the predictor reads it, the unordered
+    # pair of sub-goals) is different for every question in the store
+    questions = [store.get_query(query_id) for query_id in store.asked_ids()]
+    asked = [(loaded.predictor_inputs(np.asarray(query.state)[None])[0].tobytes(),
+              frozenset({loaded.subgoals[query.goal1].key, loaded.subgoals[query.goal2].key})) for query in questions]
+    assert len(set(asked)) == len(asked)
+    assert all(query.info.get("signature") for query in questions)
 
 
 def test_resume_feeds_labels_answered_after_the_save(tmp_path) -> None:

@@ -183,3 +183,22 @@ def test_bad_arguments_raise(kwargs, message):
 def test_inconsistent_shapes_raise(confidences, goals, q_values, message):
     with pytest.raises(ValueError, match=message):
         QuerySelector(budget=5).select(confidences, goals, q_values)
+
+
+def test_excluded_pairs_are_never_asked_and_the_next_best_second_choice_is_shown() -> None:
+    """``exclude`` marks (tuple, g2) pairs already asked: g2 becomes the best sub-goal not excluded, and a tuple whose
+    every other sub-goal is excluded is not asked; ``refund`` gives back questions counted but not asked."""
+    selector = QuerySelector(budget=10, threshold=0.0, mode="fixed")
+    q_values = np.array([[0.0, 3.0, 2.0, 1.0], [0.0, 3.0, 2.0, 1.0]])
+    exclude = np.zeros((2, 4), dtype=bool)
+    exclude[0, 1] = True  # tuple 0's best second choice was asked
+    exclude[1, [0, 2, 3]] = True  # tuple 1 (g = 1) has nothing left to ask
+    selected = selector.select(np.array([0.5, 0.5]), np.array([0, 1]), q_values, exclude=exclude)
+    assert selected == [(0, 2)]
+    assert selector.used == 1
+    selector.refund(1)
+    assert selector.used == 0
+    with pytest.raises(ValueError, match="refund"):
+        selector.refund(1)
+    with pytest.raises(ValueError, match="exclude"):
+        selector.select(np.array([0.5]), np.array([0]), q_values[:1], exclude=exclude)

@@ -12,6 +12,8 @@ runs, in Algorithm 1's order:
 - the sub-goal gallery for the labeling app, every ``gallery_every`` episodes.
 """
 
+import hashlib
+from collections.abc import Hashable
 from typing import Any
 
 import numpy as np
@@ -23,6 +25,17 @@ from sb3_hhp.oracles.base import Query
 
 def _key_json(key: object) -> list:
     return list(key) if isinstance(key, tuple) else [key]
+
+
+def question_state_id(predictor_input: np.ndarray) -> str:
+    """An id of a state as the preference predictor reads it: states with the same id are one question's state."""
+    return hashlib.sha1(np.ascontiguousarray(predictor_input).tobytes()).hexdigest()[:20]
+
+
+def question_signature(state_id: str, goal1_key: Hashable, goal2_key: Hashable) -> str:
+    """A question: its state's id and the unordered pair of its sub-goals' keys."""
+    first, second = sorted((repr(goal1_key), repr(goal2_key)))
+    return f"{state_id}|{first}|{second}"
 
 
 class BetweenEpisodes:
@@ -54,23 +67,64 @@ class BetweenEpisodes:
             oracle.train()
         if self.query_selector.remaining == 0 or len(self.subgoals) < 2:
             return
-        confidences = self.predictor.confidence(self.predictor_inputs(states), self.predictor_inputs(goal_obs[goals]))  # line 25, eq. 4
+        # a question is (an equivalent state, an unordered pair of sub-goals): states the predictor reads alike are
+        # equivalent, and a question asked before (in this run or one it resumes) is never asked again
+        inputs = self.predictor_inputs(states)
+        state_ids = [question_state_id(x) for x in inputs]
+        keys = self.subgoal_set.keys
+        unique = sorted({(state_ids[i], int(goals[i])): i for i in range(len(goals) - 1, -1, -1)}.values())
+        states, goals, inputs = states[unique], goals[unique], inputs[unique]
+        state_ids = [state_ids[i] for i in unique]
+        confidences = self.predictor.confidence(inputs, self.predictor_inputs(goal_obs[goals]))  # line 25, eq. 4
         self.last_confidences = confidences
         with th.no_grad():
             q_values = self.q_net(self.policy.obs_to_tensor(states)[0]).cpu().numpy()
         q_values[~np.broadcast_to(self.action_mask(states), q_values.shape)] = -np.inf  # g2 among the choosable sub-goals
-        selected = self.query_selector.select(confidences, goals, q_values, num_timesteps=self.num_timesteps)
-        queries = [self._query(trace, states, goals, index, int(second)) for index, second in selected]  # line 26
+        asked = self.asked_signatures
+        exclude = np.zeros(q_values.shape, dtype=bool)
+        for row, goal in enumerate(goals):
+            for second in range(len(keys)):
+                exclude[row, second] = question_signature(state_ids[row], keys[goal], keys[second]) in asked
+        selected = self.query_selector.select(confidences, goals, q_values, num_timesteps=self.num_timesteps, exclude=exclude)
+        queries, repeated = [], 0
+        for index, second in selected:  # line 26
+            signature = question_signature(state_ids[index], keys[goals[index]], keys[second])
+            if signature in asked:  # the same pair asked from another tuple of this episode
+                repeated += 1
+                continue
+            asked.add(signature)
+            query = self._query(trace, states, goals, index, second, unique[index])
+            query.info["signature"] = signature
+            queries.append(query)
+        self.query_selector.refund(repeated)
         for query in queries:  # durable before anyone answers
             self.store.add_query(query)
             self.pending_queries[query.query_id] = query
         if queries:
             oracle.submit(queries)
 
-    def _query(self: Any, trace: EpisodeTrace, states: np.ndarray, goals: np.ndarray, index: int, second: int) -> Query:
+    @property
+    def asked_signatures(self: Any) -> set[str]:
+        """The questions asked so far (:func:`question_signature`), read from the store once per ``learn``."""
+        if getattr(self, "_asked_signatures", None) is None:
+            signatures = set()
+            for query_id in self.store.asked_ids():
+                query = self.store.get_query(query_id)
+                signature = query.info.get("signature")
+                if signature is None and max(query.goal1, query.goal2) < len(self.subgoals):  # asked before signatures
+                    state_id = question_state_id(self.predictor_inputs(np.asarray(query.state)[None])[0])
+                    signature = question_signature(state_id, self.subgoals[query.goal1].key, self.subgoals[query.goal2].key)
+                if signature is not None:
+                    signatures.add(signature)
+            self._asked_signatures = signatures
+        return self._asked_signatures
+
+    def _query(self: Any, trace: EpisodeTrace, states: np.ndarray, goals: np.ndarray, index: int, second: int,
+               choice: int) -> Query:
+        """The question about tuple ``index`` (the episode's choice ``choice``) and the sub-goal ``second``."""
         goal_space, subgoals = self.goal_space, self.subgoals
         first = int(goals[index])
-        state_image = trace.high_images[index] if index < len(trace.high_images) else None
+        state_image = trace.high_images[choice] if choice < len(trace.high_images) else None
         if state_image is None:
             state_image = goal_space.image_of(states[index])
         return Query(
@@ -78,7 +132,7 @@ class BetweenEpisodes:
             goal1_obs=subgoals[first].obs, goal2_obs=subgoals[second].obs,
             state_image=state_image, goal1_image=subgoals[first].image, goal2_image=subgoals[second].image,
             info={
-                "state": trace.high_privileged[index],
+                "state": trace.high_privileged[choice],
                 "goal1_key": _key_json(subgoals[first].key),
                 "goal2_key": _key_json(subgoals[second].key),
                 "goal1_name": goal_space.describe(subgoals[first].key),

@@ -716,6 +716,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
     def resume_preferences(self) -> int:
         """Feed the predictor every answered label of the store it has not seen yet, and count every
         question already asked against the budget, so a resumed run loses no label and asks nothing twice."""
+        self._asked_signatures = None  # read again from the store
         added = 0
         for _, query, answer in self.store.answers_since(0):
             if query.query_id in self.consumed_query_ids:
@@ -735,6 +736,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         """SB3's rollout logs plus HhP's: queries, sub-goals, predictor, confidence, curiosity, sub-goal success."""
         self.logger.record("hhp/queries_used", self.query_selector.used)
         self.logger.record("hhp/queries_left", self.query_selector.remaining)
+        self.logger.record("hhp/queries_distinct", len(self.asked_signatures))
         self.logger.record("hhp/num_subgoals", len(self.subgoals))
         self.logger.record("hhp/preference_labels", len(self.predictor))
         for name, value in self.last_predictor_stats.items():
@@ -781,7 +783,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             *super()._excluded_save_params(),
             "options", "subgoal_set", "_last_trace", "rnd", "predictor", "query_selector", "return_normalizer", "subpolicies", "discovery",
             "store", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
-            "last_confidences", "consumed_query_ids", "initial_subgoals", "_mask_cache", "_present_cache",
+            "last_confidences", "consumed_query_ids", "initial_subgoals", "_asked_signatures", "_mask_cache", "_present_cache",
         ]
 
     def components_state(self) -> dict[str, Any]:

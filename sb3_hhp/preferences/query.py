@@ -117,6 +117,7 @@ class QuerySelector:
         goals: np.ndarray,
         q_values: np.ndarray,
         num_timesteps: int = 0,
+        exclude: Optional[np.ndarray] = None,
     ) -> list[tuple[int, int]]:
         """Choose which of an episode's (s, g) tuples to ask about (Algorithm 1, line 26).
 
@@ -125,6 +126,8 @@ class QuerySelector:
         :param q_values: the meta-controller's Q-values over sub-goals per tuple (N, G); invalid
             sub-goals as ``-inf`` (NaN is treated the same way)
         :param num_timesteps: primitive steps done so far (>= 0; used by the adaptive mode)
+        :param exclude: optional boolean (N, G): pairs (tuple, g2) never to ask (already asked); ``g2`` is then the
+            best sub-goal not excluded, and a tuple with none left is not askable
         :return: ``[(tuple_index, g2), ...]`` in tuple order, ``g2`` the best sub-goal other than
             ``g`` by Q-value; tuples without any other valid sub-goal are never asked. At most
             ``remaining`` entries (``used`` grows by their number).
@@ -156,6 +159,11 @@ class QuerySelector:
         # g2: the meta-controller's second choice, the highest-Q sub-goal other than g
         others = np.where(np.isnan(q_values), -np.inf, q_values)
         others[np.arange(n), goals] = -np.inf
+        if exclude is not None:
+            exclude = np.asarray(exclude, dtype=bool)
+            if exclude.shape != q_values.shape:
+                raise ValueError(f"exclude must have the shape of q_values {q_values.shape}, got {exclude.shape}")
+            others[exclude] = -np.inf
         second = others.argmax(axis=1)
         askable = np.flatnonzero(others[np.arange(n), second] > -np.inf)
         c = confidences[askable]
@@ -184,6 +192,12 @@ class QuerySelector:
             chosen = np.sort(chosen[order[:quota]])
         self._used += len(chosen)
         return [(int(i), int(second[i])) for i in chosen]
+
+    def refund(self, n: int) -> None:
+        """Give back ``n`` questions that :meth:`select` counted but that were not asked."""
+        if not 0 <= n <= self._used:
+            raise ValueError(f"refund must be in [0, used={self._used}], got {n}")
+        self._used -= int(n)
 
     def state_dict(self) -> dict[str, Any]:
         """The selector's progress: questions used, the adaptive window and threshold, the training length."""
