@@ -36,6 +36,7 @@ import inspect
 import io
 import json
 import os
+import re
 import sys
 import time
 from collections import OrderedDict
@@ -262,6 +263,7 @@ def _experiment_manager_class() -> type:
                     print("Loading from Optuna study...")
                     hyperparams.update(self.load_trial(self.storage, self.study_name, self.trial_id))
                 if self.custom_hyperparams is not None:
+                    validate_hyperparams(dict(self.custom_hyperparams), "--hyperparams")
                     hyperparams.update(self.custom_hyperparams)
                 if "env_kwargs" in hyperparams and self.env_kwargs:
                     hyperparams.update({"env_kwargs": self.env_kwargs})
@@ -274,10 +276,32 @@ def _experiment_manager_class() -> type:
             if "preference_db" not in hyperparams and not (self.optimize_hyperparameters and not options.label_server):
                 hyperparams["preference_db"] = os.path.join(self.save_path, PREFERENCE_DB_NAME)
             validate_hyperparams(hyperparams, f"{self.config} [{self.config_entry}]")
+            self._check_values(hyperparams)
+            if self.n_timesteps > 0:  # -n overrides the file: the dump (config.yml) says what was trained
+                hyperparams["n_timesteps"] = self.n_timesteps
             saved_hyperparams = OrderedDict([(key, hyperparams[key]) for key in sorted(hyperparams.keys())])
             print("Default hyperparameters for environment (ones being tuned will be overridden):")
             pprint(saved_hyperparams)
             return hyperparams, saved_hyperparams
+
+        def _check_values(self, hyperparams: dict[str, Any]) -> None:
+            """HhP's checks of the values, before anything is created, blaming ``--hyperparams`` or the file."""
+            from sb3_hhp import HhP
+
+            def check(values: dict[str, Any]) -> None:
+                kwargs = {key: value for key, value in values.items() if key not in ZOO_KEYS}
+                HhP(values.get("policy", "MlpPolicy"), None, _init_setup_model=False, **kwargs)
+
+            custom = dict(self.custom_hyperparams or {})
+            try:
+                check(hyperparams)
+            except (ValueError, TypeError) as error:
+                from_file = {key: value for key, value in hyperparams.items() if key not in custom}
+                try:
+                    check(from_file)
+                except (ValueError, TypeError):
+                    raise ConfigError(f"{self.config} [{self.config_entry}]: {error}") from error
+                raise ConfigError(f"--hyperparams: {error}") from error
 
         def setup_experiment(self) -> Any:
             try:
@@ -417,8 +441,8 @@ def _parser() -> argparse.ArgumentParser:
         epilog=(
             "Every other option is RL Zoo's (listed below) and passed through; --algo is hhp and --conf-file\n"
             "defaults to hyperparams/hhp.yml. Frequencies (--eval-freq, --save-freq, -n, -optimize's evaluations)\n"
-            "count primitive env steps, not sub-goal choices (SB3 calls callbacks once per sub-goal choice;\n"
-            "here they are triggered by model.num_timesteps). The preference database is\n"
+            "count primitive env steps, as for every RL Zoo algorithm. RL Zoo's --eval-episodes is\n"
+            "--periodic-eval-episodes here. The preference database is\n"
             "<log folder>/hhp/<ENV>_<run>/preferences.sqlite unless the file sets preference_db."
         ),
     )
@@ -455,6 +479,24 @@ def _parser() -> argparse.ArgumentParser:
         help="port of the labeling page on 127.0.0.1 (default 8000, 0 picks a free one)",
     )
     return parser
+
+
+def _without_option(help_text: str, option: str) -> str:
+    """argparse ``help_text`` without ``option`` (its usage token and its entry): RL Zoo's option of that name is
+    set through another one here."""
+    help_text = re.sub(r"\s*\[" + re.escape(option) + r" [A-Z_]+\]", "", help_text)
+    lines, kept, skipping = help_text.splitlines(keepends=True), [], False
+    for line in lines:
+        if line.startswith(f"  {option} "):
+            skipping = True
+            continue
+        if skipping and line.startswith("  ") and not line.startswith("   "):
+            skipping = False
+        if skipping and not line.strip():
+            skipping = False
+        if not skipping:
+            kept.append(line)
+    return "".join(kept)
 
 
 def _zoo_peek(argv: Sequence[str]) -> argparse.Namespace:
@@ -513,9 +555,14 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
     if options.help:
         _parser().print_help()
         print("\nRL Zoo options (passed through to rl_zoo3.train):")
-        with _replaced(sys, "argv", ["python -m sb3_hhp.train", "--help"]):
+        zoo_help = io.StringIO()
+        with _replaced(sys, "argv", ["python -m sb3_hhp.train", "--help"]), contextlib.redirect_stdout(zoo_help):
             register()
-            rl_zoo3.train.train()  # prints RL Zoo's help and exits
+            try:
+                rl_zoo3.train.train()  # prints RL Zoo's help and exits
+            except SystemExit:
+                pass
+        print(_without_option(zoo_help.getvalue(), "--eval-episodes"), end="")
         return None
     if options.label_server and options.oracle is None:
         options.oracle = "web"

@@ -406,6 +406,17 @@ def test_load_refuses_corrupt_and_foreign_files(tmp_path) -> None:
         HhP.load(foreign)
 
 
+@pytest.mark.parametrize("cut", [100, 5_000])
+def test_load_reports_a_truncated_model_as_truncated(tmp_path, trained: HhP, cut: int) -> None:
+    """A model whose file lost its end (an interrupted copy) is reported as truncated, not as a foreign file."""
+    path = tmp_path / "whole.zip"
+    trained.save(path)
+    truncated = tmp_path / "truncated.zip"
+    truncated.write_bytes(path.read_bytes()[:-cut])
+    with pytest.raises(ValueError, match="truncated.*complete copy"):
+        HhP.load(truncated)
+
+
 def test_load_refuses_a_zip_whose_components_are_garbage(tmp_path, trained: HhP) -> None:
     path = tmp_path / "broken.zip"
     trained.save(path)

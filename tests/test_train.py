@@ -79,8 +79,9 @@ def test_short_run_writes_summary_and_rl_zoo_outputs(tmp_path: Path) -> None:
     assert Path(summary["preference_db"]) == run_dir / "preferences.sqlite" and Path(summary["preference_db"]).is_file()
     config = yaml.unsafe_load((run_dir / "MiniGrid-Empty-5x5-v0" / "config.yml").read_text())
     assert dict(config)["oracle"] == "scripted"
-    # RL Zoo's EvalCallback and CheckpointCallback ran every 1500 primitive steps (not sub-goal choices: those
-    # number a few hundred here), at the first sub-goal choice past each multiple
+    assert dict(config)["n_timesteps"] == 3000  # -n, not the file's 20000
+    # RL Zoo's EvalCallback and CheckpointCallback ran every 1500 primitive steps (callbacks are called once per
+    # primitive step of the env)
     timesteps = np.load(run_dir / "evaluations.npz")["timesteps"]
     assert len(timesteps) == 2 and 1500 <= timesteps[0] <= 1600 and 3000 <= timesteps[1] <= 3100
     assert len(list(run_dir.glob("rl_model_*_steps.zip"))) == 2
@@ -218,7 +219,18 @@ def test_constructor_refusal_is_a_config_error(tmp_path: Path, capsys: pytest.Ca
     status = train.main(["--env", "MiniGrid-Empty-5x5-v0", "--hyperparams", "beta:2.0", "-n", "10", "--eval-freq", "-1",
                          "-f", str(tmp_path), "--verbose", "0"])
     assert status == 2
-    assert "beta must be in [0, 1], got 2.0" in capsys.readouterr().err
+    error = capsys.readouterr().err
+    assert "--hyperparams: beta must be in [0, 1], got 2.0" in error and "hhp.yml" not in error
+    assert not (tmp_path / "hhp").exists()  # refused before the run's folder was made
+    assert train.main(["--env", "MiniGrid-Empty-5x5-v0", "--hyperparams", "wizard:3", "-f", str(tmp_path)]) == 2
+    assert "--hyperparams: unknown hyperparameter 'wizard'" in capsys.readouterr().err
+
+
+def test_help_lists_each_option_once(capsys: pytest.CaptureFixture) -> None:
+    assert train.main(["--help"]) == 0
+    text = capsys.readouterr().out
+    assert text.count("  --eval-episodes EVAL_EPISODES") == 1 and text.count("[--eval-episodes EVAL_EPISODES]") == 1
+    assert "--eval-freq" in text  # RL Zoo's options are listed too
 
 
 def test_hhp_is_registered_with_rl_zoo() -> None:

@@ -9,6 +9,7 @@ confident choices (lines 24-27), discover sub-goals (line 29) and update the cur
 """
 
 import io
+import pathlib
 import pickle
 import zipfile
 from collections import Counter, deque
@@ -54,6 +55,21 @@ SUBGOAL_LEARNERS = {"heads": SharedHeadsDQN, "stacked": StackedDQN}
 
 #: the zip member of a saved model that holds the components beyond the meta-controller
 COMPONENTS_FILE = "hhp_components.pt"  # not .pth: SB3 loads every .pth member as weights only
+
+
+def _holds(file: Any, data: bytes, prefix: bool = False) -> bool:
+    """Whether a model file (a path or a binary file object) begins with, or contains, ``data``."""
+    try:
+        if hasattr(file, "read"):
+            position = file.tell()
+            file.seek(0)
+            content = file.read()
+            file.seek(position)
+        else:
+            content = pathlib.Path(file).read_bytes()
+    except (OSError, ValueError):
+        return False
+    return content.startswith(data) if prefix else data in content
 
 
 def _vec_env(env: Union[GymEnv, str, None]) -> Optional[VecEnv]:
@@ -825,8 +841,6 @@ class HhP(BetweenEpisodes, DoubleDQN):
         """SB3's save (meta-controller) plus one more zip member with every other component."""
         super().save(path, exclude=exclude, include=include)
         if isinstance(path, (str,)) or hasattr(path, "__fspath__"):
-            import pathlib
-
             path = pathlib.Path(path)
             if path.suffix == "":
                 path = path.with_suffix(".zip")
@@ -847,14 +861,15 @@ class HhP(BetweenEpisodes, DoubleDQN):
         **kwargs: Any,
     ) -> SelfHhP:
         """Load a saved HhP (everything :meth:`save` wrote); give ``env`` to go on training."""
-        import pathlib
-
         file = pathlib.Path(path) if isinstance(path, str) or hasattr(path, "__fspath__") else path
         if isinstance(file, pathlib.Path) and not file.exists() and file.with_suffix(".zip").exists():
             file = file.with_suffix(".zip")
         try:
             with zipfile.ZipFile(file) as archive:
                 if COMPONENTS_FILE not in archive.namelist():
+                    if _holds(file, COMPONENTS_FILE.encode()):  # the member's header is there, the archive's end is not
+                        raise ValueError(f"{path} is truncated: it holds the start of an HhP model's {COMPONENTS_FILE} "
+                                         "but not the end of the file (an interrupted copy or save?); use a complete copy")
                     raise ValueError(f"{path} is not an HhP model: it has no {COMPONENTS_FILE} (was it saved by HhP.save?)")
                 try:
                     components = th.load(io.BytesIO(archive.read(COMPONENTS_FILE)), map_location="cpu", weights_only=False)
@@ -867,6 +882,9 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 if "predictor_input" not in kwargs and '"predictor_input"' not in archive.read("data").decode("utf-8", "replace"):
                     kwargs["predictor_input"] = "observation"  # saved before the predictor could read features
         except zipfile.BadZipFile as error:
+            if _holds(file, b"PK\x03\x04", prefix=True):
+                raise ValueError(f"{path} is truncated or damaged: it begins as a saved model (a zip archive) but its end "
+                                 f"is missing or unreadable ({error}); use a complete copy") from error
             raise ValueError(f"{path} is not a saved HhP model (not a zip archive): {error}") from error
         model = super().load(file, env=None, device=device, custom_objects=custom_objects,
                              print_system_info=print_system_info, force_reset=force_reset, **kwargs)
