@@ -8,11 +8,11 @@ with open(os.path.join(os.path.dirname(__file__), "version.txt")) as file_handle
 
 def __getattr__(name: str):
     # HhP is imported lazily so that `import sb3_hhp` stays light (and registers nothing global).
-    if name == "HhP":
-        from sb3_hhp.hhp import HhP
+    if name in ("HhP", "PAPER_KWARGS"):
+        from sb3_hhp import hhp
 
-        return HhP
+        return getattr(hhp, name)
     raise AttributeError(f"module 'sb3_hhp' has no attribute {name!r}")
 
 
-__all__ = ["HhP", "__version__"]
+__all__ = ["HhP", "PAPER_KWARGS", "__version__"]

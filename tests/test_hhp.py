@@ -707,8 +707,8 @@ def test_predictor_reads_goal_space_features_or_observations() -> None:
 
 
 def test_meta_controller_reads_goal_space_features_or_observations() -> None:
-    """meta_input "auto" or "features": the Q-network reads the goal space's features, so two layouts with the same
-    description get the same Q-values; "observation" (the default): SB3's flattened observation; a clear error
+    """meta_input "auto" (the default) or "features": the Q-network reads the goal space's features, so two layouts
+    with the same description get the same Q-values; "observation": SB3's flattened observation; a clear error
     where features cannot be had."""
     from stable_baselines3.common.torch_layers import FlattenExtractor
 
@@ -725,7 +725,8 @@ def test_meta_controller_reads_goal_space_features_or_observations() -> None:
     assert same, "no two layouts with the same description among the first states"
     for i, j in same:
         np.testing.assert_allclose(q_values[i], q_values[j])
-    assert isinstance(make_model(DOORKEY).q_net.features_extractor, FlattenExtractor)
+    assert isinstance(make_model(DOORKEY).q_net.features_extractor, GoalSpaceFeatures)
+    assert isinstance(make_model(DOORKEY, meta_input="observation").q_net.features_extractor, FlattenExtractor)
 
     class NoFeatures(MiniGridGoalSpace):
         def features(self, obs):
@@ -742,7 +743,7 @@ def test_meta_controller_reads_goal_space_features_or_observations() -> None:
 # ---------------------------------------------------------------------------- resume
 
 
-@pytest.mark.parametrize("budget, first_steps", [(10, 2_000), (2_000, 1_000)])
+@pytest.mark.parametrize("budget, first_steps", [(10, 3_000), (2_000, 1_000)])
 def test_resume_with_a_preference_database(tmp_path, budget: int, first_steps: int) -> None:
     """Budget 10 is spent before the save (the resumed run must ask nothing more); budget 2000 is not
     (the resumed run asks more, counting what was asked before the save). t_qry = 0: every tuple qualifies, and
@@ -750,7 +751,7 @@ def test_resume_with_a_preference_database(tmp_path, budget: int, first_steps: i
     db = str(tmp_path / "prefs.sqlite")
     predictor_kwargs = dict(hidden_dim=64, buffer_size=budget + 100)  # room to see a label added twice
     model = make_model(DOORKEY, preference_db=db, query_budget=budget, predictor_kwargs=predictor_kwargs,
-                       mask_subgoals=False)
+                       mask_subgoals=False, subgoal_learner="heads")  # heads: more sub-goals found in these few steps
     model.learn(first_steps)
     used_before = model.query_selector.used
     assert 0 < used_before <= budget
@@ -790,7 +791,8 @@ def test_resume_feeds_labels_answered_after_the_save(tmp_path) -> None:
     from sb3_hhp.oracles.base import Query
 
     db = str(tmp_path / "prefs.sqlite")
-    model = make_model(DOORKEY, preference_db=db, predictor_kwargs=dict(hidden_dim=64, buffer_size=100))
+    model = make_model(DOORKEY, preference_db=db, predictor_kwargs=dict(hidden_dim=64, buffer_size=100),
+                       subgoal_learner="heads")  # heads: more sub-goals found in these few steps
     model.learn(600)
     model.save(tmp_path / "hhp")
     n_labels = len(model.predictor)
@@ -872,9 +874,9 @@ def test_cnn_policy_reads_minigrid_grids_with_a_small_cnn() -> None:
 
     model = HhP("CnnPolicy", gym.make(DOORKEY), **{**TINY, "seed": 0, "query_budget": 5})
     assert isinstance(model.q_net.features_extractor, GridCNN)
-    assert isinstance(model.subpolicies.network.features_extractor, GridCNN)
     model.learn(400)
     assert model.num_timesteps >= 400 and len(model.subgoals) >= 1
+    assert isinstance(model.subpolicies.policy(0).q_net.features_extractor, GridCNN)
     obs = observations()
     features = GridCNN(model.primitive_observation_space)(th.as_tensor(obs))
     assert features.shape == (len(obs), 128)

@@ -102,7 +102,7 @@ def _fingerprint(model: HhP) -> tuple:
     return (
         model.num_timesteps, [goal.key for goal in model.subgoals], model.query_selector.used,
         float(sum(p.detach().double().sum() for p in model.q_net.parameters())),
-        float(sum(p.detach().double().sum() for p in learners.network.parameters())),
+        float(sum(value.double().sum() for value in learners.state_dict().values() if isinstance(value, th.Tensor))),
     )
 
 

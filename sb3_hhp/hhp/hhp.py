@@ -36,7 +36,7 @@ from sb3_hhp.dqn.dqn import DoubleDQN
 from sb3_hhp.goals import GoalSpace, make_goal_space, wrap_env
 from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, GridCNN, MlpPolicy, MultiInputPolicy
 from sb3_hhp.hhp.episodes import BetweenEpisodes
-from sb3_hhp.hierarchy.learners import SharedHeadsDQN, StackedDQN
+from sb3_hhp.hierarchy.learners import PAPER_SUBPOLICY_KWARGS, SharedHeadsDQN, StackedDQN
 from sb3_hhp.hierarchy.options import (
     EpisodeTrace, OptionRunner, Subgoal, SubgoalSet, SubgoalVecEnv, check_vec_env, env_view, option_terminal,
 )
@@ -55,6 +55,27 @@ SUBGOAL_LEARNERS = {"heads": SharedHeadsDQN, "stacked": StackedDQN}
 
 #: the zip member of a saved model that holds the components beyond the meta-controller
 COMPONENTS_FILE = "hhp_components.pt"  # not .pth: SB3 loads every .pth member as weights only
+
+
+def _continuous_actions(env: Union[GymEnv, str]) -> bool:
+    """Whether ``env`` (a gym env, a VecEnv or an env id) has a continuous (Box) action space."""
+    if isinstance(env, str):
+        try:
+            space = gym.spec(env).make().action_space
+        except gym.error.Error:
+            return False  # the unknown id is reported with its fix when the env is built
+    else:
+        space = env.action_space
+    return isinstance(space, spaces.Box)
+
+
+#: the paper's settings (section 5.1) over the class defaults, which are those measured to learn MiniGrid here:
+#: the paper's sub-goal learner, an uncentred preference bonus, the meta-controller on observations, sub-goals
+#: learning only while they act, 200 questions
+PAPER_KWARGS: dict[str, Any] = dict(
+    query_budget=200, center_bonus=False, meta_input="observation", predictor_input="observation",
+    subgoal_learner="stacked", train_shared=False, subpolicy_kwargs=PAPER_SUBPOLICY_KWARGS, max_subgoal_steps=50,
+)
 
 
 def _holds(file: Any, data: bytes, prefix: bool = False) -> bool:
@@ -140,11 +161,12 @@ class HhP(BetweenEpisodes, DoubleDQN):
     :param share_experience: every transition also trains (off-policy) the other sub-goals' learners, relabelled with
         their rewards (False: each learns only from the steps where it acted)
     :param train_shared: ``subgoal_learner="stacked"`` and DDPG sub-goals: every sub-goal takes its gradient steps on
-        every primitive step (at its own ``train_freq``), not only while it acts; the heads learner always does
-    :param subgoal_learner: discrete actions: "heads" (default: one network, a shared trunk and one head per sub-goal,
-        one relabelled batch for all; the cost of a step barely grows with the number of sub-goals) or "stacked" (a
-        network of its own per sub-goal, all updated in one call; cost and memory grow with the number of sub-goals);
-        see the README's Design
+        every primitive step (at its own ``train_freq``), not only while it acts; the heads learner always does.
+        Default (None): True for discrete actions, False for DDPG sub-goals (a model each: K times the updates)
+    :param subgoal_learner: discrete actions: "stacked" (default: a network of its own per sub-goal, all updated in
+        one call; measured to learn DoorKey-8x8 faster; cost and memory grow with the number of sub-goals) or "heads"
+        (one network, a shared trunk and one head per sub-goal, one relabelled batch for all; the cost of a step
+        barely grows with the number of sub-goals); see the README's Design
     :param center_bonus: centre the preference bonus over the sub-goals of each state: True or "mean" subtracts
         their mean, "max" the best choosable one's score, so that no choice is paid (see the README's Design)
     :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
@@ -166,7 +188,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         policy: Union[str, type[DQNPolicy]],
         env: Union[GymEnv, str, None],
         oracle: Union[str, Oracle, None] = "scripted",
-        query_budget: int = 200,
+        query_budget: int = 100,
         t_qry: float = 0.26,
         query_mode: str = "adaptive",
         query_horizon: Optional[int] = None,
@@ -187,7 +209,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         predictor_head: str = "linear",
         confidence_spread: str = "std",
         predictor_input: str = "auto",
-        meta_input: str = "observation",
+        meta_input: str = "auto",
         predictor_kwargs: Optional[dict[str, Any]] = None,
         rnd_kwargs: Optional[dict[str, Any]] = None,
         subpolicy_kwargs: Optional[dict[str, Any]] = None,
@@ -196,9 +218,9 @@ class HhP(BetweenEpisodes, DoubleDQN):
         oracle_kwargs: Optional[dict[str, Any]] = None,
         n_opt: int = 4,
         share_experience: bool = True,
-        train_shared: bool = False,
-        subgoal_learner: str = "heads",
-        center_bonus: Union[bool, str] = True,
+        train_shared: Optional[bool] = None,
+        subgoal_learner: str = "stacked",
+        center_bonus: Union[bool, str] = "max",
         mask_subgoals: bool = True,
         record_images: Optional[bool] = None,
         learning_rate: Union[float, Schedule] = 1e-3,
@@ -236,6 +258,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
             raise ValueError(f"n_opt must be >= 1, got {n_opt}")
         if train_shared and not share_experience:
             raise ValueError("train_shared=True trains subpolicies on shared experience: it needs share_experience=True")
+        if train_shared is None:  # discrete sub-goal learners train on every step; one DDPG model per sub-goal does not
+            train_shared = share_experience and (env is None or not _continuous_actions(env))
         if subgoal_learner not in SUBGOAL_LEARNERS:
             raise ValueError(f"subgoal_learner must be one of {sorted(SUBGOAL_LEARNERS)}, got {subgoal_learner!r}")
         if predictor_input not in ("auto", "features", "observation"):
@@ -345,6 +369,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
         ``meta_input`` asks for them (and no extractor is named)."""
         policy_kwargs = dict(policy_kwargs or {})
         reads_features = self._reads_features("meta_input", self.meta_input)
+        if self.meta_input == "auto" and self.subpolicy_policy == "CnnPolicy":
+            reads_features = False  # CnnPolicy asks for a CNN on the observation
         if self.meta_input == "features" and "features_extractor_class" in policy_kwargs:
             raise ValueError("meta_input='features' sets the features extractor: remove features_extractor_class from policy_kwargs")
         if reads_features and "features_extractor_class" not in policy_kwargs:
