@@ -11,33 +11,33 @@ meta-controller with its own): a greedy subpolicy can get stuck repeating one ac
 forth, or a no-op such as "pick up" in front of the goal) until its sub-goal gives up, and a greedy
 meta-controller then chooses the same sub-goal again from the same state.
 
-Calibration: the class defaults (the sub-goal learner of ``DEFAULT_SUBPOLICY_KWARGS``, heads of one network over
-one shared replay), 8,000 primitive steps, 30 evaluation episodes on seeds 10,000-10,029, training seeds 0-9, on
-this 2-core machine with two other training processes running (one torch thread; 69-89 s of training each;
-the whole test took 58 s on the idle machine).
+Calibration: the class defaults (stacked sub-goal learners of ``DEFAULT_SUBPOLICY_KWARGS`` training on every step,
+the max-centred preference bonus, the meta-controller on the goal space's features), 8,000 primitive steps, 30
+evaluation episodes on seeds 10,000-10,029, training seeds 0-9, on this 2-core machine with four other training
+processes running (one torch thread; 145-257 s of training each at a load average of 4-5).
 The random policy scores success 0.60, mean return 0.354 on these seeds.
 
 ==========  ============  ===========
 train seed  success rate  mean return
 ==========  ============  ===========
-0 (test)    1.00          0.958
-1           1.00          0.949
-2           1.00          0.950
-3           1.00          0.942
-4           1.00          0.962
-5           1.00          0.952
-6           1.00          0.941
-7           1.00          0.946
-8           1.00          0.943
-9           1.00          0.919
+0 (test)    1.00          0.949
+1           1.00          0.963
+2           1.00          0.890
+3           1.00          0.940
+4           1.00          0.956
+5           1.00          0.965
+6           1.00          0.964
+7           1.00          0.964
+8           1.00          0.965
+9           0.97          0.770
 ==========  ============  ===========
 
-Every seed clears both bars (success 0.9, mean return 0.4 above the random policy's) with room to spare, so the
-test does not hinge on the seed; the test trains seed 0 only. A run is deterministic given its seed on one machine
-(``tests/test_hhp.py::test_same_seed_same_run``); on another CPU, floating-point results may differ in the last
-bits (other vectorised kernels), and training amplifies such differences, which is why the bars are set where
-every calibration seed clears them, not at one seed's figure. (The learner before the shared replay scored 0.00
-on another machine of this kind with seed 0, and 0.67 on seed 3 here.)
+Every seed clears both bars (success 0.9; mean return 0.3 above the random policy's, i.e. 0.654), seed 9 the return
+bar by 0.12, so the test does not hinge on the seed; it trains seed 0 only. A run is deterministic given its seed on
+one machine (``tests/test_hhp.py::test_same_seed_same_run``, ``tests/test_vec_envs.py::test_a_run_repeats_given_its_seed``);
+on another CPU, floating-point results may differ in the last bits (other vectorised kernels), and training amplifies
+such differences, which is why the bars are set where every calibration seed clears them, not at one seed's figure.
+(An earlier learner scored 0.00 on another machine of this kind with seed 0, and 0.67 on seed 3 here.)
 """
 
 from collections.abc import Callable
@@ -56,7 +56,7 @@ TRAIN_SEED = 0
 TRAIN_STEPS = 8_000  # primitive env steps
 EVAL_SEEDS = [10_000 + i for i in range(30)]  # never a training seed
 MIN_SUCCESS_RATE = 0.9
-MIN_RETURN_MARGIN = 0.4  # mean return above the random policy's, on the same seeds
+MIN_RETURN_MARGIN = 0.3  # mean return above the random policy's, on the same seeds
 
 pytestmark = pytest.mark.slow
 
