@@ -30,7 +30,7 @@ _USED = {
     "target_update_interval", "exploration_initial_eps", "exploration_final_eps", "n_steps", "replay_buffer_kwargs",
     "max_grad_norm", "double_q", "prioritized_replay_alpha", "prioritized_replay_beta", "prioritized_replay_eps",
 }
-_TINY = 1e-30  # below this, Adam's moments are set to 0 (a subnormal float32 starts at 1.2e-38)
+_TINY = 1e-30  # added to and taken from Adam's moments: what lies below its last bit (~1e-37) becomes 0, never subnormal
 _IGNORED = {"exploration_fraction", "optimize_memory_usage", "tau", "prioritized_replay"}
 
 
@@ -388,21 +388,28 @@ class StackedDQN:
 
     def _adam(self, index: th.Tensor, grad: th.Tensor, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8) -> None:
         """Adam (torch's defaults) with each sub-goal's own step count, after clipping each sub-goal's gradient
-        norm to ``max_grad_norm`` (as SB3 clips a model's)."""
-        scale = th.clamp(self.max_grad_norm / (grad.norm(dim=1, keepdim=True) + 1e-6), max=1.0)
-        grad = grad * scale
-        self.adam_steps[index] += 1
-        steps = self.adam_steps[index]
+        norm to ``max_grad_norm`` (as SB3 clips a model's). Sub-goals ``0..n-1`` (all of them, the usual case)
+        are updated in place through views; any other set through gathered rows."""
+        grad = grad * th.clamp(self.max_grad_norm / (grad.norm(dim=1, keepdim=True) + 1e-6), max=1.0)
+        n = len(index)
+        rows: Any = slice(0, n) if bool((index == th.arange(n, device=index.device)).all()) else index
+        self.adam_steps[rows] += 1
+        steps = self.adam_steps[rows]
         correction1 = (1 - betas[0] ** steps).float().unsqueeze(1)
         correction2 = (1 - betas[1] ** steps).float().unsqueeze(1)
-        m = self.exp_avg[index].mul_(betas[0]).add_(grad, alpha=1 - betas[0])
-        v = self.exp_avg_sq[index].mul_(betas[1]).addcmul_(grad, grad, value=1 - betas[1])
-        # moments that decay towards 0 become subnormal floats, which CPUs multiply ~30x slower: flush them to 0
-        m.masked_fill_(m.abs() < _TINY, 0.0)
-        v.masked_fill_(v < _TINY, 0.0)
-        self.exp_avg[index] = m
-        self.exp_avg_sq[index] = v
-        self.params[index] = self.params[index] - self.lr * (m / correction1) / ((v / correction2).sqrt() + eps)
+        m, v = self.exp_avg[rows], self.exp_avg_sq[rows]  # views for a slice, copies for an index
+        m.mul_(betas[0]).add_(grad, alpha=1 - betas[0])
+        v.mul_(betas[1]).addcmul_(grad, grad, value=1 - betas[1])
+        # moments that decay towards 0 would become subnormal floats, which CPUs multiply ~30x slower: adding and
+        # taking away a small normal number sends anything below its last bit (~1e-37) to exactly 0
+        m.add_(_TINY).sub_(_TINY)
+        v.add_(_TINY).sub_(_TINY)
+        step = (m / correction1).div_((v / correction2).sqrt_().add_(eps)).mul_(self.lr)
+        if isinstance(rows, slice):
+            self.params[rows].sub_(step)
+        else:
+            self.exp_avg[rows], self.exp_avg_sq[rows] = m, v
+            self.params[rows] = self.params[rows] - step
 
     # ------------------------------------------------------------------ SB3 views, save / load
     def policy(self, goal: int) -> DQNPolicy:
