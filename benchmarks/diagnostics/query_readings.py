@@ -1,10 +1,10 @@
-"""DESIGN.md gap 1: how often does each reading of the confidence threshold ask on a real run?
+"""How often does each reading of the confidence threshold (eq. 4 against t_qry) ask on a real run?
 
 Trains HhP with the fixed threshold t_qry under three readings (linear head + std, sigmoid head +
 std, sigmoid head + variance as eq. 4 is written) and the adaptive mode, and records the queries asked
 and the spread of the confidences seen.
 
-    python benchmarks/query_readings.py --env MiniGrid-DoorKey-5x5-v0 --steps 8000 --out benchmarks/results/query_readings.json
+    python benchmarks/diagnostics/query_readings.py --env MiniGrid-DoorKey-5x5-v0 --steps 8000 --out benchmarks/results/query_readings.json
 """
 
 import argparse

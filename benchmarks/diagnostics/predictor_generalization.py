@@ -8,7 +8,7 @@ predictor's best choosable sub-goal is the oracle's (the next milestone of an op
 predictor reads (the observation, or the goal space's features) and how the pair of a query is drawn (any two
 sub-goals, or two sub-goals choosable in the state, as with ``mask_subgoals``).
 
-    python benchmarks/predictor_generalization.py --out benchmarks/results/predictor_generalization.json
+    python benchmarks/diagnostics/predictor_generalization.py --out benchmarks/results/predictor_generalization.json
 """
 
 import argparse
