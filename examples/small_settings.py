@@ -1,10 +1,30 @@
-"""HhP settings shared by the examples: small buffers and fewer dropout masks, so a demo runs in a minute."""
+"""HhP settings shared by the examples: those of the CI learning test (``tests/test_learning.py``), small enough that
+a run on ``MiniGrid-Empty-Random-5x5-v0`` learns in about a minute on one CPU thread (with 20 questions).
+
+    python examples/small_settings.py    # prints them, beside the class defaults they replace
+"""
 
 SMALL_SETTINGS = dict(
-    max_subgoal_steps=50,
-    learning_starts=500,  # meta-controller warm-up, in primitive steps (beyond the first episode)
-    buffer_size=50_000,
-    n_masks=100,  # MC-dropout masks of the confidence (paper: 500)
-    subpolicy_kwargs=dict(learning_starts=100, buffer_size=20_000, batch_size=64),
-    subpolicy_exploration_steps=2_000,
+    n_masks=20,  # MC-dropout masks of the confidence (paper: 500)
+    learning_starts=200,  # meta-controller warm-up, in primitive steps
+    max_subgoal_steps=30,  # a sub-goal gives up after this many primitive steps
+    subpolicy_kwargs=dict(learning_starts=64),  # the sub-goal learners start updating after 64 stored steps
 )
+
+#: the env the examples train on by default: a 3x3 room whose start changes with the seed
+SMALL_ENV = "MiniGrid-Empty-Random-5x5-v0"
+
+
+def main() -> None:
+    import inspect
+
+    from sb3_hhp import HhP
+
+    defaults = inspect.signature(HhP).parameters
+    print(f"examples train on {SMALL_ENV} with:")
+    for name, value in SMALL_SETTINGS.items():
+        print(f"  {name} = {value!r}  (class default {defaults[name].default!r})")
+
+
+if __name__ == "__main__":
+    main()
