@@ -122,3 +122,11 @@ def test_only_wrappers_that_change_nothing_are_accepted() -> None:
     model = HhP("MlpPolicy", VecMonitor(DummyVecEnv([lambda: wrap_env(gym.make(EMPTY))] * 2)), seed=0, **TINY)
     model.learn(300)
     assert model.num_timesteps >= 300
+
+
+def test_the_shared_replay_holds_buffer_size_transitions_over_all_envs() -> None:
+    """As SB3's replay buffers: ``buffer_size`` is divided among the envs, so n envs keep the same number of
+    transitions (the same recent past) as one."""
+    one = HhP("MlpPolicy", vec_env(1), seed=0, **TINY).subpolicies.replay
+    four = HhP("MlpPolicy", vec_env(4), seed=0, **TINY).subpolicies.replay
+    assert one.capacity * one.n_envs == four.capacity * four.n_envs == TINY["subpolicy_kwargs"]["buffer_size"]

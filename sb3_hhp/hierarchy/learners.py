@@ -146,14 +146,15 @@ class StackedDQN:
         lower_bound = bool(replay_kwargs.pop("off_policy_lower_bound", False))
         if replay_kwargs:
             raise ValueError(f"Unknown subpolicy replay_buffer_kwargs {sorted(replay_kwargs)}: only off_policy_lower_bound")
+        self.buffer_size = int(kw["buffer_size"])
         self._replay_kwargs = dict(
-            capacity=int(kw["buffer_size"]), observation_space=observation_space, action_space=action_space,
+            observation_space=observation_space, action_space=action_space,
             achieved=achieved, alpha=alpha, gamma=self.gamma, n_steps=int(kw["n_steps"]), lower_bound=lower_bound,
             share_experience=share_experience, shared_priorities=self._shared_priorities,
             priority_alpha=kw["prioritized_replay_alpha"], priority_beta=kw["prioritized_replay_beta"],
             priority_eps=kw["prioritized_replay_eps"], seed=seed,
         )
-        self.replay = SharedReplay(n_envs=n_envs, **self._replay_kwargs)
+        self.replay = self._make_replay(n_envs)
         # SB3's CNN reads channel-first images: the env's channel-last frames are turned when they reach a network
         self._transpose = is_image_space(observation_space) and not is_image_space_channels_first(observation_space)
         net_space = observation_space
@@ -275,10 +276,16 @@ class StackedDQN:
     def n_envs(self) -> int:
         return self.replay.n_envs
 
+    def _make_replay(self, n_envs: int) -> SharedReplay:
+        """The shared replay of ``n_envs`` env streams: ``buffer_size`` transitions in all, as SB3's replay buffers
+        divide their size among the envs."""
+        capacity = max(self.buffer_size // n_envs, int(self._replay_kwargs["n_steps"]) + 1)
+        return SharedReplay(capacity, n_envs=n_envs, **self._replay_kwargs)
+
     def set_n_envs(self, n_envs: int) -> None:
         """Step ``n_envs`` envs from now on: a new, empty replay with a stream per env (as SB3's ``set_env`` starts
         from an empty buffer after ``load``), the sub-goals kept."""
-        replay = SharedReplay(n_envs=n_envs, **self._replay_kwargs)
+        replay = self._make_replay(n_envs)
         for key in self.replay.goal_keys:
             replay.add_goal(key)
         self.replay = replay
