@@ -39,6 +39,7 @@ import os
 import re
 import sys
 import time
+import warnings
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -551,6 +552,8 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
     from sb3_hhp.oracles.registry import ORACLE_NAMES
 
     argv = list(sys.argv[1:] if argv is None else argv)
+    # HhP trains on its sub-goal view of the envs (SubgoalVecEnv) and RL Zoo evaluates on the plain VecEnv, by design
+    warnings.filterwarnings("ignore", message="Training and eval env are not of the same type")
     options, zoo_argv = _parser().parse_known_args(argv)
     if options.help:
         _parser().print_help()
