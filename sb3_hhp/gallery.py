@@ -26,6 +26,18 @@ __all__ = ["main", "write_gallery"]
 
 HTML_NAME = "subgoals.html"
 SHEET_NAME = "subgoals.png"
+#: what each figure under a sub-goal means, shown above the gallery
+LEGEND = (
+    ("name", "the situation the sub-goal stands for, in words; the image is the state where it was found"),
+    ("found at step", "the environment step at which curiosity-driven discovery added it"),
+    ("success", "share of its last 100 tries in which its subpolicy reached it"),
+    ("chosen", "how often the meta-controller chose it in its last 1,000 choices"),
+    (
+        "score",
+        "the preference predictor's mean score for it over the states of the latest episode: higher means people "
+        "are predicted to prefer it; compare it between sub-goals (it has no fixed scale)",
+    ),
+)
 
 
 def _fmt(value: Optional[float], digits: int, percent: bool = False) -> str:
@@ -72,6 +84,7 @@ def _write_html(records: list[dict], path: Path, title: str) -> None:
             f"{html.escape(second)}</figcaption></figure>"
         )
     body = "\n".join(cards) if cards else "<p>No sub-goal yet.</p>"
+    legend = "".join(f"<dt>{html.escape(term)}</dt><dd>{html.escape(text)}</dd>" for term, text in LEGEND)
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>
@@ -80,9 +93,12 @@ body {{ font: 15px/1.4 system-ui, sans-serif; margin: 1rem; background: #f6f6f3;
 figure {{ margin: 0; background: #fff; border: 1px solid #d6d6d0; border-radius: 6px; padding: 0.6rem; }}
 img {{ display: block; width: 256px; height: 256px; object-fit: contain; image-rendering: pixelated;
        background: #222; margin: 0 auto; }}
-figcaption {{ margin-top: 0.4rem; }}
+figcaption {{ margin-top: 0.4rem; white-space: pre-line; }}
+dl {{ display: grid; grid-template-columns: max-content 1fr; gap: 0.15rem 0.8rem; color: #6b6b66; }}
+dt {{ font-weight: 600; color: #1d1d1b; }} dd {{ margin: 0; }}
 </style></head>
 <body><h1>{html.escape(title)} ({len(records)})</h1>
+<dl class="legend">{legend}</dl>
 <div class="grid">
 {body}
 </div></body></html>

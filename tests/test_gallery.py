@@ -73,3 +73,13 @@ def test_cli_reports_a_file_that_is_not_a_model(tmp_path, capsys):
     bogus.write_bytes(b"not a zip archive")
     assert main([str(bogus)]) == 1
     assert "cannot load the HhP model" in capsys.readouterr().err
+
+
+def test_write_gallery_names_each_subgoal_and_explains_its_columns(tmp_path):
+    given = records(2)
+    given[0]["name"] = "carrying key, facing locked door"
+    html_path, _ = write_gallery(given, tmp_path)
+    page = html_path.read_text()
+    assert "carrying key, facing locked door" in page
+    for column in ("found at step", "success", "chosen", "score"):
+        assert f"<dt>{column}</dt>" in page

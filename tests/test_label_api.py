@@ -183,6 +183,7 @@ def test_subgoal_gallery_api(db):
         "success_rate": 0.5,
         "chosen_recently": 2,
         "mean_score": -0.3,
+        "name": None,
         "image": "/api/subgoal/4.png",
     }
     np.testing.assert_array_equal(decode_png(client.get(record["image"]).content), image)
@@ -261,3 +262,130 @@ def test_web_oracle_collects_answers_from_any_process(tmp_path):
     assert [a.query_id for a in WebOracle(trainer_store, start_seq=0).collect()] == ["q1", "q0"]
     annotator_store.close()
     trainer_store.close()
+
+
+def minigrid_query(query_id: str = "m0", signature: str = "s0"):
+    """A question about a real DoorKey state, with the facts and names training writes into ``info``."""
+    import gymnasium as gym
+    import minigrid  # noqa: F401
+
+    from sb3_hhp.goals.minigrid import MiniGridEgocentricObs, MiniGridGoalSpace
+
+    env = MiniGridEgocentricObs(gym.make("MiniGrid-DoorKey-8x8-v0", render_mode="rgb_array"))
+    env.reset(seed=3)
+    goal_space = MiniGridGoalSpace()
+    facts = goal_space.privileged(env)
+    keys = [(5, 4, 2), ("success",)]  # carrying the key facing the locked door; the task solved
+    query = make_query(0)
+    query.query_id = query_id
+    query.info = {
+        "state": facts,
+        "goal1_key": list(keys[0]),
+        "goal2_key": list(keys[1]),
+        "goal1_name": goal_space.describe(keys[0]),
+        "goal2_name": goal_space.describe(keys[1]),
+        "signature": signature,
+    }
+    env.close()
+    return query, facts, keys
+
+
+def test_sub_goals_are_named_and_drawn_in_the_current_room(db):
+    from sb3_hhp.goals.minigrid import HIGHLIGHT_RGB, MiniGridGoalSpace
+    from sb3_hhp.label.app import LAYOUT_TILE
+
+    store, _ = db
+    query, facts, keys = minigrid_query()
+    store.add_query(query)
+    store.add_query(minigrid_query("m1", signature="s0")[0])  # the same question asked twice
+    store.set_query_budget(50)
+    for query_id in ("q0", "q1", "q2"):
+        store.add_answer(query_id, "EQUAL", "someone")
+    client = TestClient(create_app(store))
+    body = client.get("/api/next", params={"annotator": "alice"}).json()
+    assert (body["asked"], body["budget"], body["queued"]) == (5, 50, 2)
+    assert (body["distinct"], body["signed"]) == (1, 2)  # two asked, one distinct
+    question = body["query"]
+    assert question["query_id"] == "m0" and question["drawn_in_state"]
+    assert question["goal1_name"] == "carrying key, facing locked door" and question["goal2_name"] == "task solved"
+
+    goal_space = MiniGridGoalSpace(tile_size=LAYOUT_TILE)
+    for which, key in (("goal1", keys[0]), ("goal2", keys[1]), ("state", None)):
+        drawn = decode_png(client.get(question["images"][which]).content)
+        np.testing.assert_array_equal(drawn, goal_space.image_in_state(facts, key))
+    goal1 = decode_png(client.get(question["images"]["goal1"]).content)
+    assert (goal1 == HIGHLIGHT_RGB).all(axis=-1).sum() > 0  # the key and the door are framed
+    assert goal_space.concerned_cells(facts, keys[0]).sum() == 2 and goal_space.concerned_cells(facts, keys[1]).sum() == 1
+    # the image from where the sub-goal was found stays one request away
+    found = client.get(question["images"]["goal1_found"])
+    np.testing.assert_array_equal(decode_png(found.content), query.goal1_image)
+    assert "state_found" not in question["images"]
+
+
+def test_an_answer_records_its_time_and_hands_over_the_next_question(db):
+    store, _ = db
+    client = TestClient(create_app(store))
+    reply = client.post(
+        "/api/answer", json={"query_id": "q0", "label": "FIRST", "annotator": "alice", "response_s": 1.5, "next": True}
+    ).json()
+    assert reply["next"]["query_id"] == "q1" and reply["next"]["goal1_name"] == "sub-goal #1"
+    # without the state's facts (other goal spaces) people see the stored images, nothing to swap
+    assert not reply["next"]["drawn_in_state"] and reply["next"]["images"]["goal1_found"] is None
+    assert reply["your_median_s"] == 1.5 and reply["answered_by_you"] == 1
+    # the next question is leased to alice: bob gets the one after
+    assert client.get("/api/next", params={"annotator": "bob"}).json()["query"]["query_id"] == "q2"
+    client.post("/api/answer", json={"query_id": "q1", "label": "SECOND", "annotator": "alice", "response_s": 2.5})
+    assert client.get("/api/next", params={"annotator": "alice"}).json()["your_median_s"] == 2.0
+    assert store.response_times("alice") == [1.5, 2.5] and store.response_times("bob") == []
+
+
+def test_malformed_inputs_get_4xx_and_leave_the_db_unchanged(db):
+    from sb3_hhp.label.app import MAX_BODY_BYTES, MAX_ID_LENGTH
+
+    store, path = db
+    store.put_subgoals([{"id": 0, "image": np.zeros((4, 4, 3), np.uint8)}])
+    client = TestClient(create_app(store))
+    before = dump(path)
+    answer = {"query_id": "q0", "label": "FIRST", "annotator": "alice"}
+    huge = {**answer, "annotator": "a" * (5 * 1024 * 1024)}
+    assert client.post("/api/answer", json=huge).status_code == 413  # read no further, stored nothing
+    padded = client.post(
+        "/api/answer", content=b" " * (MAX_BODY_BYTES + 1) + b"{}", headers={"content-type": "application/json"}
+    )
+    assert padded.status_code == 413
+    long_id = client.post("/api/answer", json={**answer, "query_id": "q" * 3000})
+    assert long_id.status_code == 422 and "q" * 100 not in long_id.text  # bounded, and never echoed back
+    assert "query_id" in long_id.text  # says which field to fix
+    for bad in (-1.0, 1e9, "soon"):
+        assert client.post("/api/answer", json={**answer, "response_s": bad}).status_code == 422, bad
+    paths = [
+        "/api/subgoal/" + "9" * 23 + ".png",  # beyond SQLite's integers (a 500 once)
+        "/api/subgoal/-1.png",
+        "/api/subgoal/abc.png",
+        "/api/subgoal/1e3.png",
+        "/api/image/" + "q" * (MAX_ID_LENGTH + 1) + "/state.png",
+        "/api/image/q0/goal9.png",
+        "/api/image/q0/" + "x" * 100 + ".png",
+        "/api/image/%FF%FE/state.png",
+        "/api/image/q0%00/state.png",
+        "/api/next?annotator=" + "a" * 101,
+    ]
+    for url in paths:
+        response = client.get(url)
+        assert 400 <= response.status_code < 500, (url, response.status_code)
+        assert len(response.content) < 2000, url
+    assert client.get("/api/subgoal/0.png").status_code == 200
+    assert dump(path) == before
+
+
+def test_cli_refuses_a_missing_db_unless_asked_to_create(tmp_path, capsys):
+    from sb3_hhp.label.__main__ import main
+
+    missing = tmp_path / "typo.sqlite"
+    assert main(["--db", str(missing)]) == 2
+    message = capsys.readouterr().err
+    assert "--create" in message and str(missing) in message
+    assert not missing.exists() and list(tmp_path.iterdir()) == []
+    assert main(["--db", str(tmp_path / "no" / "such" / "folder.sqlite"), "--create"]) == 2
+    assert "folder does not exist" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []

@@ -141,3 +141,73 @@ def test_the_gallery_page_shows_every_subgoal(browser):
             assert errors == []
         finally:
             page.close()
+
+
+def minigrid_query(query_id: str, signature: str) -> Query:
+    """A question about a real DoorKey state, with the facts and names training writes into ``info``."""
+    import gymnasium as gym
+    import minigrid  # noqa: F401
+
+    from sb3_hhp.goals.minigrid import MiniGridEgocentricObs, MiniGridGoalSpace
+
+    env = MiniGridEgocentricObs(gym.make("MiniGrid-DoorKey-8x8-v0", render_mode="rgb_array"))
+    env.reset(seed=3)
+    goal_space = MiniGridGoalSpace()
+    keys = [(5, 4, 2), ("success",)]  # carrying the key facing the locked door; the task solved
+    query = make_query(0)
+    query.query_id = query_id
+    query.info = {
+        "state": goal_space.privileged(env),
+        "goal1_key": list(keys[0]),
+        "goal2_key": list(keys[1]),
+        "goal1_name": goal_space.describe(keys[0]),
+        "goal2_name": goal_space.describe(keys[1]),
+        "signature": signature,
+    }
+    env.close()
+    return query
+
+
+def test_a_person_sees_names_no_broken_images_and_every_control_without_scrolling(browser):
+    store = PreferenceStore()
+    store.add_query(minigrid_query("m0", signature="s0"))
+    store.add_query(minigrid_query("m1", signature="s1"))
+    store.set_query_budget(20)
+    with LabelServer(store, reply_window_s=30.0) as server:
+        page = browser.new_page(viewport={"width": 1280, "height": 720})
+        errors = []
+        page.on("pageerror", lambda error: errors.append(error))
+        try:
+            page.goto(server.url)  # no name yet: empty boxes, never a broken-image sign
+            hidden = page.eval_on_selector_all(".panels img", "imgs => imgs.map(i => getComputedStyle(i).visibility)")
+            assert hidden == ["hidden", "hidden", "hidden"]
+            page.fill("#annotator", "carol")
+            page.press("#annotator", "Enter")
+            page.wait_for_selector('#question[data-state="ready"]', timeout=10_000)
+            assert page.text_content("#goal1-name") == "carrying key, facing locked door"
+            assert page.text_content("#goal2-name") == "task solved"
+            assert page.text_content("#budget") == "20" and page.text_content("#distinct") == "2 / 2"
+            outside = page.evaluate(
+                """() => ['#goal1-name', '#goal2-name', '#img-goal1', '#img-state', '#img-goal2', '#btn-first',
+                          '#btn-second', '#btn-equal', '#btn-incomparable'].filter(s => {
+                  const r = document.querySelector(s).getBoundingClientRect();
+                  return r.bottom > innerHeight || r.right > innerWidth || r.width === 0; })"""
+            )
+            assert outside == []
+            left = page.eval_on_selector("#img-goal1", "i => i.getBoundingClientRect().left")
+            right = page.eval_on_selector("#img-goal2", "i => i.getBoundingClientRect().left")
+            assert left < right  # the left arrow answers for the image on the left
+            drawn = page.get_attribute("#img-goal1", "src")
+            page.keyboard.press("e")  # the image from where the sub-goal was found
+            page.wait_for_function("document.getElementById('img-goal1').src.includes('goal1_found')", timeout=5_000)
+            page.keyboard.press("e")
+            page.wait_for_function(f"document.getElementById('img-goal1').getAttribute('src') === {drawn!r}", timeout=5_000)
+            page.keyboard.press("ArrowRight")
+            page.wait_for_selector('#question[data-query-id="m1"][data-state="ready"]', timeout=10_000)
+            page.wait_for_function("document.getElementById('median-mine').textContent.endsWith(' s')", timeout=5_000)
+            assert errors == []
+        finally:
+            page.close()
+    assert store.get_answer("m0").label == Label.SECOND
+    [seconds] = store.response_times("carol")
+    assert 0 < seconds < 30

@@ -342,3 +342,64 @@ def test_foreign_or_corrupt_files_are_refused_untouched(tmp_path):
         PreferenceStore(tmp_path)
     with pytest.raises(ValueError, match="timeout must be > 0"):
         PreferenceStore(":memory:", timeout=0)
+
+
+def test_a_store_of_schema_version_1_is_migrated_and_keeps_its_answers(tmp_path):
+    path = tmp_path / "old.db"
+    store = PreferenceStore(path)
+    store.add_query(make_query(0))
+    store.add_answer("q0", "FIRST", "alice")
+    store.close()
+    conn = sqlite3.connect(path)  # make it a file written by schema version 1
+    conn.execute("ALTER TABLE answers DROP COLUMN response_s")
+    conn.execute("ALTER TABLE subgoals DROP COLUMN info")
+    conn.execute("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
+    conn.commit()
+    conn.close()
+    store = PreferenceStore(path)
+    assert store.get_answer("q0").annotator == "alice" and store.response_times() == []
+    store.add_query(make_query(1))
+    store.add_answer("q1", "SECOND", "bob", response_s=1.25)
+    assert store.response_times("bob") == [1.25]
+    store.close()
+    conn = sqlite3.connect(path)
+    assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == str(SCHEMA_VERSION)
+    conn.close()
+
+
+def test_create_false_refuses_a_missing_file_and_writes_nothing(tmp_path):
+    with pytest.raises(FileNotFoundError, match="No preference store"):
+        PreferenceStore(tmp_path / "typo.db", create=False)
+    assert list(tmp_path.iterdir()) == []
+    PreferenceStore(tmp_path / "new.db").close()
+    PreferenceStore(tmp_path / "new.db", create=False).close()
+
+
+def test_budget_distinct_questions_response_times_and_named_subgoals():
+    store = PreferenceStore()
+    stats = store.stats()
+    assert stats["budget"] is None and stats["distinct"] is None and stats["signed"] == 0
+    for index, signature in enumerate(["a", "b", "a", None]):
+        query = make_query(index)
+        if signature is not None:
+            query.info["signature"] = signature
+        store.add_query(query)
+    store.set_query_budget(200)
+    stats = store.stats()
+    assert (stats["asked"], stats["budget"], stats["distinct"], stats["signed"]) == (4, 200, 2, 3)
+    with pytest.raises(ValueError, match="budget must be an integer >= 0"):
+        store.set_query_budget(-1)
+    store.add_answer("q0", "FIRST", "alice", response_s=2.0)
+    store.add_answer("q1", "FIRST", "alice")
+    with pytest.raises(ValueError, match="response_s must be"):
+        store.add_answer("q2", "FIRST", "alice", response_s=float("nan"))
+    assert store.response_times("alice") == [2.0] and store.get_answer("q2") is None
+    assert store.query_info("q0")["signature"] == "a" and store.query_goals("q0")[:2] == (0, 1)
+
+    image = np.zeros((4, 4, 3), np.uint8)
+    store.put_subgoals([{"id": 3, "image": image, "name": "carrying key, facing locked door"}, {"id": 4, "image": image}])
+    assert [r["name"] for r in store.subgoals(with_images=False)] == ["carrying key, facing locked door", None]
+    with pytest.raises(KeyError, match="ids are in"):
+        store.subgoal_png(10**22)
+    with pytest.raises(ValueError, match="Sub-goal id must be in"):
+        store.put_subgoals([{"id": -1, "image": image}])

@@ -93,3 +93,14 @@ class GoalSpace(ABC):
     def describe(self, key: Hashable) -> str:
         """A short human-readable name of a sub-goal key."""
         return str(key)
+
+    def key_from_json(self, value: Any) -> Hashable:
+        """The sub-goal key stored as JSON in a question's ``info`` (a tuple key comes back as a list)."""
+        return tuple(value) if isinstance(value, list) else value
+
+    def image_in_state(self, state: dict[str, Any], key: Optional[Hashable] = None) -> Optional[np.ndarray]:
+        """An RGB image of the state whose privileged facts (:meth:`privileged`) are ``state``, drawn the
+        same way for every question; with ``key``, the part of that state the sub-goal concerns stands
+        out, so a person sees the sub-goal in the layout in front of them. None (the default): this goal
+        space cannot draw from those facts, and people see the sub-goal's own image."""
+        return None

@@ -17,6 +17,7 @@ sub-goal is reached without access to the environment.
 from collections.abc import Hashable
 from typing import Any, Optional
 
+import cv2
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
@@ -40,6 +41,10 @@ DOOR, GOAL, OPEN, LOCKED = OBJECT_TO_IDX["door"], OBJECT_TO_IDX["goal"], STATE_T
 GOAL_OUT_OF_REACH = "goal out of reach"
 MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
 N_OBJECTS, N_COLORS, N_STATES = len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE_TO_IDX)
+#: the frame drawn around the cells a sub-goal concerns (a colour MiniGrid's objects never have)
+HIGHLIGHT_RGB = (255, 64, 200)
+#: brightness of the rest of the room in a sub-goal drawn in a state's layout
+DIM = 0.45
 
 
 def find_minigrid(env: gym.Env) -> Optional[MiniGridEnv]:
@@ -237,6 +242,63 @@ class MiniGridGoalSpace(GoalSpace):
         center = obs.shape[0] // 2
         grid, _ = Grid.decode(obs)
         return np.asarray(grid.render(self.tile_size, agent_pos=(center, center), agent_dir=3), dtype=np.uint8)
+
+    def concerned_cells(self, state: dict[str, Any], key: Hashable) -> np.ndarray:
+        """Which cells of the state's grid (a boolean (W, H) mask, ``[x, y]``) a sub-goal concerns: the goal
+        squares for "task solved"; else the objects of the kind to face (a door in any state: the same door
+        is opened or closed) and, when the sub-goal carries something the agent does not carry yet, the
+        objects of that kind to pick up. Walls and empty cells are nobody's target: an empty mask.
+
+        :param state: privileged facts of the state (:meth:`privileged`): ``grid``, ``carrying``
+        :param key: the sub-goal key
+        """
+        codes = np.asarray(state["grid"], dtype=np.int64)
+        objects, colors = codes[..., 0], codes[..., 1]
+        if key == SUCCESS_KEY:
+            return objects == GOAL
+        if self.use_color:
+            carried, carried_color, front, front_color, _ = key
+        else:
+            (carried, front, _), carried_color, front_color = key, None, None
+
+        def of_kind(kind: int, color: Optional[int]) -> np.ndarray:
+            return (objects == kind) & (True if color is None else colors == color)
+
+        mask = of_kind(front, front_color) if front in INTERACTIVE else np.zeros(objects.shape, dtype=bool)
+        carrying_now = state.get("carrying")
+        now = EMPTY if not carrying_now else int(carrying_now[0])
+        if carried != EMPTY and carried != now:
+            mask |= of_kind(carried, carried_color)
+        return mask
+
+    def image_in_state(self, state: dict[str, Any], key: Optional[Hashable] = None) -> Optional[np.ndarray]:
+        """The state's room drawn by MiniGrid's renderer from its privileged facts (``grid``, ``agent_pos``,
+        ``agent_dir``); with ``key``, the cells it concerns (:meth:`concerned_cells`) keep their colours
+        inside a :data:`HIGHLIGHT_RGB` frame and the rest of the room is dimmed. None when ``state`` lacks
+        those facts."""
+        try:
+            codes = np.asarray(state["grid"], dtype=np.uint8)
+            agent_pos = tuple(int(v) for v in state["agent_pos"])
+            agent_dir = int(state["agent_dir"])
+        except (KeyError, TypeError, ValueError):
+            return None
+        if codes.ndim != 3 or codes.shape[2] != 3 or not all(0 <= v < n for v, n in zip(agent_pos, codes.shape[:2])):
+            return None
+        grid, _ = Grid.decode(codes)
+        tile = self.tile_size
+        image = np.asarray(grid.render(tile, agent_pos=agent_pos, agent_dir=agent_dir), dtype=np.uint8)
+        if key is None:
+            return image
+        mask = self.concerned_cells(state, key)
+        if not mask.any():
+            return image
+        bright = np.kron(mask.T, np.ones((tile, tile), dtype=bool))  # image rows are y, columns x
+        bright[agent_pos[1] * tile : (agent_pos[1] + 1) * tile, agent_pos[0] * tile : (agent_pos[0] + 1) * tile] = True
+        image = np.where(bright[..., None], image, (image * DIM).astype(np.uint8))
+        width = max(1, tile // 8)
+        for x, y in np.argwhere(mask):
+            cv2.rectangle(image, (x * tile, y * tile), ((x + 1) * tile - 1, (y + 1) * tile - 1), HIGHLIGHT_RGB, width)
+        return image
 
     def describe(self, key: Hashable) -> str:
         if key == SUCCESS_KEY:

@@ -1,10 +1,13 @@
 """Serve the labeling page over a preference store: ``python -m sb3_hhp.label --db PATH``.
 
 Run it beside a training run that uses ``WebOracle`` on the same ``--db`` file; open the printed
-address in a browser (several annotators may share it, each under their own name).
+address in a browser (several annotators may share it, each under their own name). A ``--db`` path
+that does not exist is refused (a mistyped path would otherwise serve a new, empty store that no
+training run writes to) unless ``--create`` asks for a new store.
 """
 
 import argparse
+import os
 import sys
 from typing import Optional
 
@@ -19,6 +22,9 @@ def parse_args(argv: Optional[list[str]] = None) -> argparse.Namespace:
     """Command-line arguments of ``python -m sb3_hhp.label``."""
     parser = argparse.ArgumentParser(prog="python -m sb3_hhp.label", description=__doc__.splitlines()[0])
     parser.add_argument("--db", required=True, help="the preference store (SQLite file) shared with training")
+    parser.add_argument(
+        "--create", action="store_true", help="create an empty store when --db does not exist (refused otherwise)"
+    )
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (anything but loopback needs --token)")
     parser.add_argument("--port", type=int, default=8000, help="TCP port (0 picks a free one)")
     parser.add_argument("--token", default=None, help="access token required by every API call")
@@ -33,7 +39,16 @@ def main(argv: Optional[list[str]] = None) -> int:
     args = parse_args(argv)
     try:
         check_bind(args.host, args.token)
-        store = PreferenceStore(args.db)
+        if args.create and not os.path.isdir(os.path.dirname(os.path.abspath(args.db))):
+            raise ValueError(f"Cannot create {args.db!r}: its folder does not exist; create the folder first")
+        store = PreferenceStore(args.db, create=args.create)
+    except FileNotFoundError:
+        print(
+            f"error: there is no preference store at {args.db!r}. Check the path (it is the training run's "
+            "preference_db); to start a new, empty store there, pass --create",
+            file=sys.stderr,
+        )
+        return 2
     except ValueError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

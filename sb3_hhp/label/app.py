@@ -1,51 +1,119 @@
 """The labeling web application: people compare two sub-goals in a state (section 4.1.1).
 
-The page (``/``) shows the current state and the two sub-goal images side by side and takes
-FIRST / SECOND / EQUAL / CAN'T TELL by button or key (Left, Right, ``=``, ``x``) within a reply
+The page (``/``) shows the first sub-goal on the left, the current state in the middle and the
+second sub-goal on the right, each sub-goal named in words, and takes FIRST / SECOND / EQUAL /
+CAN'T TELL by button or key (Left = left image, Right = right image, ``=``, ``x``) within a reply
 window (5 s, as the paper's annotators had); when the window runs out the page answers CAN'T TELL.
-Several annotators may label at once: a question handed to one is leased to them for the reply
-window plus a grace period, so two people are not shown the same question at the same time.
-``/gallery`` shows every sub-goal with its statistics and refreshes itself.
+Where the goal space can draw from the state's privileged facts (MiniGrid), each sub-goal is drawn
+in the current state's room with the cells it concerns highlighted, and the image from where it was
+found is one key (``e``) away. Several annotators may label at once: a question handed to one is
+leased to them for the reply window plus a grace period, so two people are not shown the same
+question at the same time. ``/gallery`` shows every sub-goal with its statistics and refreshes itself.
 
 JSON API (all under ``/api``; with a token, pass it as ``X-Token`` header, ``Authorization: Bearer``
 or ``?token=``):
 
-- ``GET /api/next?annotator=NAME``: the next open question for NAME (``query`` is ``null`` if none)
-- ``POST /api/answer`` ``{"query_id", "label", "annotator"}``: 404 unknown id, 409 answered already,
-  422 bad label or missing annotator; the store is unchanged on any error
+- ``GET /api/next?annotator=NAME``: the next open question for NAME (``query`` is ``null`` if none),
+  with the counts the page shows (budget, waiting, distinct questions, NAME's answers and median time)
+- ``POST /api/answer`` ``{"query_id", "label", "annotator", "response_s", "next"}``: 404 unknown id,
+  409 answered already, 422 bad label, missing annotator or bad ``response_s`` (seconds the person
+  took); with ``"next": true`` the reply holds the annotator's next question as ``next``
 - ``GET /api/stats``: queue length and answer counts
-- ``GET /api/image/{query_id}/{which}.png``: ``which`` in state/goal1/goal2, only for open queries
+- ``GET /api/image/{query_id}/{which}.png``: ``which`` in :data:`IMAGE_NAMES`, only for open queries
 - ``GET /api/subgoals``, ``GET /api/subgoal/{id}.png``: the sub-goal gallery
+
+Bad input never reaches the store: bodies above :data:`MAX_BODY_BYTES` get 413, ids longer than
+:data:`MAX_ID_LENGTH` or out of SQLite's range and any malformed parameter get 4xx, and error
+messages do not echo what was sent.
 """
 
+import functools
 import secrets
+import statistics
 import threading
 import time
 from pathlib import Path
 from typing import Any, Optional
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
-from fastapi.responses import FileResponse, Response
+from fastapi import Path as PathParam
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
 
-from sb3_hhp.oracles.base import Label
-from sb3_hhp.preferences.store import IMAGE_KINDS, AlreadyAnswered, PreferenceStore
+from sb3_hhp.goals.base import GoalSpace
+from sb3_hhp.preferences.types import Label
+from sb3_hhp.preferences.store import (
+    IMAGE_KINDS,
+    MAX_SUBGOAL_ID,
+    AlreadyAnswered,
+    PreferenceStore,
+    encode_png,
+)
 
-__all__ = ["LEASE_GRACE_S", "create_app"]
+__all__ = ["IMAGE_NAMES", "LEASE_GRACE_S", "MAX_BODY_BYTES", "MAX_ID_LENGTH", "create_app"]
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 #: seconds a question stays leased to its annotator after the reply window ran out
 LEASE_GRACE_S = 5.0
+#: the largest request body accepted (an answer is about 100 bytes); larger ones get 413
+MAX_BODY_BYTES = 16 * 1024
+#: the longest query id accepted (training writes 32 hex digits)
+MAX_ID_LENGTH = 200
+#: the images of a question: state, the two sub-goals (drawn in the state's layout when the goal
+#: space can, else the images where they were found) and, when drawn, the images where they were found
+IMAGE_NAMES = ("state", "goal1", "goal2", "goal1_found", "goal2_found")
+#: pixels per MiniGrid cell of the images drawn from a state's privileged facts
+LAYOUT_TILE = 32
 _NO_STORE = {"Cache-Control": "no-store"}
+_IMAGE_CACHE_SIZE = 256
 
 
 class AnswerIn(BaseModel):
     """The body of ``POST /api/answer``."""
 
-    query_id: str = Field(min_length=1)
+    query_id: str = Field(min_length=1, max_length=MAX_ID_LENGTH)
     label: Any
     annotator: str = Field(min_length=1, max_length=100)
+    #: seconds from the question shown to the answer, as the page measured them
+    response_s: Optional[float] = Field(default=None, ge=0, le=3600)
+    #: hand the annotator their next question in the reply (saves the page a round trip)
+    next: bool = False
+
+
+def layout_goal_space(info: dict) -> Optional[GoalSpace]:
+    """The goal space that draws a question in its state's layout, from what its ``info`` holds (None: none can).
+
+    MiniGrid questions carry the state's grid (``info["state"]["grid"]``) and the sub-goal keys
+    (``goal1_key``): 5 numbers with colours, 3 without.
+    """
+    state, key = info.get("state"), info.get("goal1_key")
+    if not isinstance(state, dict) or "grid" not in state or not isinstance(key, list):
+        return None
+    from sb3_hhp.goals.minigrid import MiniGridGoalSpace
+
+    return MiniGridGoalSpace(use_color=len(key) == 5, tile_size=LAYOUT_TILE)
+
+
+def draw_question(info: dict) -> dict[str, bytes]:
+    """PNGs of a question drawn in its state's layout: ``state``, ``goal1``, ``goal2`` (empty when the goal
+    space cannot draw it, or the facts are malformed: people then see the stored images)."""
+    goal_space = layout_goal_space(info)
+    if goal_space is None:
+        return {}
+    state = info["state"]
+    try:
+        images = {
+            "state": goal_space.image_in_state(state),
+            "goal1": goal_space.image_in_state(state, goal_space.key_from_json(info["goal1_key"])),
+            "goal2": goal_space.image_in_state(state, goal_space.key_from_json(info["goal2_key"])),
+        }
+    except (KeyError, TypeError, ValueError, IndexError):
+        return {}
+    if any(image is None for image in images.values()):
+        return {}
+    return {kind: encode_png(image, f"the {kind} drawn in the state's layout") for kind, image in images.items()}
 
 
 class _Leases:
@@ -107,16 +175,35 @@ def create_app(store: PreferenceStore, token: Optional[str] = None, reply_window
                 headers={"WWW-Authenticate": "Bearer"},
             )
 
-    app = FastAPI(title="sb3_hhp labeling", docs_url=None, redoc_url=None, openapi_url=None)
+    app = FastAPI(
+        title="sb3_hhp labeling", docs_url=None, redoc_url=None, openapi_url=None, max_body_size=MAX_BODY_BYTES
+    )
     app.state.store = store
     app.state.reply_window_s = reply_window_s
     api = APIRouter(prefix="/api", dependencies=[Depends(check_token)])
 
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(request: Request, error: RequestValidationError) -> JSONResponse:
+        # Say which field is wrong and why, without echoing what was sent (it may be megabytes).
+        problems = [
+            f"{'.'.join(str(part) for part in problem.get('loc', ()))}: {problem.get('msg', 'invalid')}"
+            for problem in error.errors()
+        ]
+        return JSONResponse(status_code=422, content={"detail": problems})
+
+    @functools.lru_cache(maxsize=_IMAGE_CACHE_SIZE)
+    def drawn(query_id: str) -> dict[str, bytes]:
+        return draw_question(store.query_info(query_id))
+
     def counts(annotator: Optional[str] = None) -> dict:
         stats = store.stats()
-        result = {"queued": stats["queued"], "answered": stats["answered"], "per_annotator": stats["per_annotator"]}
+        result = {
+            key: stats[key] for key in ("asked", "budget", "queued", "answered", "distinct", "signed", "per_annotator")
+        }
         if annotator is not None:
             result["answered_by_you"] = stats["per_annotator"].get(annotator, 0)
+            times = store.response_times(annotator)
+            result["your_median_s"] = statistics.median(times) if times else None
         return result
 
     @api.get("/next")
@@ -128,22 +215,32 @@ def create_app(store: PreferenceStore, token: Optional[str] = None, reply_window
         question = None
         if query_id is not None:
             try:
-                query = store.get_query(query_id)
-                kinds = store.image_kinds(query_id)
+                question = describe_question(query_id)
             except KeyError:  # pragma: no cover - queries are never deleted
-                query = None
-            if query is not None:
-                question = {
-                    "query_id": query.query_id,
-                    "goal1": query.goal1,
-                    "goal2": query.goal2,
-                    "asked_at": query.asked_at,
-                    "images": {
-                        kind: (f"/api/image/{query.query_id}/{kind}.png" if kind in kinds else None)
-                        for kind in IMAGE_KINDS
-                    },
-                }
+                question = None
         return {"query": question, "reply_window_s": reply_window_s, **counts(annotator)}
+
+    def describe_question(query_id: str) -> dict:
+        info = store.query_info(query_id)
+        goals = store.query_goals(query_id)
+        kinds = set(store.image_kinds(query_id))
+        layout = drawn(query_id)
+        images: dict[str, Optional[str]] = {}
+        for kind in IMAGE_KINDS:
+            images[kind] = f"/api/image/{query_id}/{kind}.png" if kind in kinds or kind in layout else None
+            if kind != "state":
+                found = kind in layout and kind in kinds
+                images[f"{kind}_found"] = f"/api/image/{query_id}/{kind}_found.png" if found else None
+        return {
+            "query_id": query_id,
+            "goal1": goals[0],
+            "goal2": goals[1],
+            "goal1_name": str(info.get("goal1_name") or f"sub-goal #{goals[0]}"),
+            "goal2_name": str(info.get("goal2_name") or f"sub-goal #{goals[1]}"),
+            "drawn_in_state": bool(layout),
+            "asked_at": goals[2],
+            "images": images,
+        }
 
     @api.post("/answer")
     def post_answer(body: AnswerIn) -> dict:
@@ -155,7 +252,7 @@ def create_app(store: PreferenceStore, token: Optional[str] = None, reply_window
         except ValueError as error:
             raise HTTPException(status_code=422, detail=str(error)) from error
         try:
-            answer = store.add_answer(body.query_id, label, annotator)
+            answer = store.add_answer(body.query_id, label, annotator, response_s=body.response_s)
         except KeyError as error:
             raise HTTPException(status_code=404, detail=f"Unknown query id {body.query_id!r}") from error
         except AlreadyAnswered as error:
@@ -163,25 +260,32 @@ def create_app(store: PreferenceStore, token: Optional[str] = None, reply_window
         except ValueError as error:
             raise HTTPException(status_code=422, detail=str(error)) from error
         leases.release(body.query_id)
-        return {
+        reply = {
             "query_id": answer.query_id,
             "label": answer.label.name,
             "annotator": answer.annotator,
             "answered_at": answer.answered_at,
             **counts(annotator),
         }
+        if body.next:
+            next_id = leases.pick(store.open_query_ids(), annotator)
+            reply["next"] = None if next_id is None else describe_question(next_id)
+        return reply
 
     @api.get("/stats")
     def stats() -> dict:
         return {**store.stats(), "reply_window_s": reply_window_s}
 
     @api.get("/image/{query_id}/{which}.png")
-    def image(query_id: str, which: str) -> Response:
+    def image(query_id: str = PathParam(max_length=MAX_ID_LENGTH), which: str = PathParam(max_length=20)) -> Response:
         # Only questions still open are shown: answered ones are nobody's business any more.
-        if which not in IMAGE_KINDS or not store.is_open(query_id):
-            raise HTTPException(status_code=404, detail="No such image of an open question")
+        if which not in IMAGE_NAMES or not store.is_open(query_id):
+            raise HTTPException(status_code=404, detail=f"No such image of an open question; images: {IMAGE_NAMES}")
         try:
-            png = store.image_png(query_id, which)
+            if which.endswith("_found"):  # the image where the sub-goal was found
+                png = store.image_png(query_id, which[: -len("_found")])
+            else:  # drawn in the state's layout when the goal space can, else the stored image
+                png = drawn(query_id).get(which) or store.image_png(query_id, which)
         except KeyError as error:
             raise HTTPException(status_code=404, detail="No such image of an open question") from error
         return Response(content=png, media_type="image/png", headers=_NO_STORE)
@@ -194,7 +298,7 @@ def create_app(store: PreferenceStore, token: Optional[str] = None, reply_window
         return {"subgoals": records, "time": time.time()}
 
     @api.get("/subgoal/{subgoal_id}.png")
-    def subgoal_image(subgoal_id: int) -> Response:
+    def subgoal_image(subgoal_id: int = PathParam(ge=0, le=MAX_SUBGOAL_ID)) -> Response:
         try:
             png = store.subgoal_png(subgoal_id)
         except KeyError as error:

@@ -29,16 +29,19 @@ from typing import Any, Optional, Union
 import cv2
 import numpy as np
 
-from sb3_hhp.oracles.base import Answer, Label, Query
+from sb3_hhp.preferences.types import Answer, Label, Query
 
 __all__ = ["AlreadyAnswered", "PreferenceStore", "decode_png", "encode_png"]
 
 #: identifies a preference store in its ``meta`` table
 STORE_FORMAT = "sb3_hhp.preferences"
 #: bumped whenever the schema changes; older files are migrated, newer ones refused
-SCHEMA_VERSION = 1
+#: (2: sub-goals carry an ``info`` JSON with their name, answers the seconds a person took)
+SCHEMA_VERSION = 2
 #: the images a query may carry, as named in the API
 IMAGE_KINDS = ("state", "goal1", "goal2")
+#: the largest sub-goal id SQLite can hold (a signed 64-bit integer)
+MAX_SUBGOAL_ID = 2**63 - 1
 
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 
@@ -67,7 +70,8 @@ CREATE TABLE IF NOT EXISTS answers (
     query_id TEXT NOT NULL UNIQUE REFERENCES queries (query_id),
     label INTEGER NOT NULL CHECK (label IN (0, 1, 2, 3)),
     annotator TEXT NOT NULL CHECK (length(annotator) > 0),
-    answered_at REAL NOT NULL
+    answered_at REAL NOT NULL,
+    response_s REAL
 );
 CREATE TABLE IF NOT EXISTS subgoals (
     id INTEGER PRIMARY KEY,
@@ -75,9 +79,18 @@ CREATE TABLE IF NOT EXISTS subgoals (
     found_at INTEGER,
     success_rate REAL,
     chosen_recently INTEGER NOT NULL DEFAULT 0,
-    mean_score REAL
+    mean_score REAL,
+    info TEXT NOT NULL DEFAULT '{}'
 );
 """
+
+#: schema migrations: the statements that bring a store of version ``v - 1`` to version ``v``
+_MIGRATIONS = {
+    2: (
+        "ALTER TABLE answers ADD COLUMN response_s REAL",
+        "ALTER TABLE subgoals ADD COLUMN info TEXT NOT NULL DEFAULT '{}'",
+    ),
+}
 
 _QUERY_COLUMNS = (
     "query_id, run_id, goal1, goal2, state, goal1_obs, goal2_obs, state_png, goal1_png, goal2_png, info, asked_at"
@@ -192,14 +205,18 @@ class PreferenceStore:
         A file that exists but is not a preference store (another SQLite database, a corrupt or
         unrelated file) raises ``ValueError`` and is left untouched.
     :param timeout: seconds to wait for another process's write lock before failing (> 0)
+    :param create: create the file when it does not exist; with ``False`` a missing file raises
+        ``FileNotFoundError`` and nothing is written (for tools that must open an existing store)
     """
 
-    def __init__(self, path: Union[str, os.PathLike] = ":memory:", timeout: float = 30.0) -> None:
+    def __init__(self, path: Union[str, os.PathLike] = ":memory:", timeout: float = 30.0, create: bool = True) -> None:
         if timeout <= 0:
             raise ValueError(f"timeout must be > 0 seconds, got {timeout}")
         self.path = str(path) if str(path) == ":memory:" else os.fspath(path)
         self._lock = threading.RLock()
         if self.path != ":memory:":
+            if not create and not os.path.exists(self.path):
+                raise FileNotFoundError(f"No preference store at {self.path!r}")
             _check_sqlite_header(self.path)
         try:
             self._conn = sqlite3.connect(self.path, timeout=timeout, isolation_level=None, check_same_thread=False)
@@ -243,6 +260,18 @@ class PreferenceStore:
                 conn.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
                 conn.execute("INSERT OR IGNORE INTO meta VALUES ('created_at', ?)", (repr(time.time()),))
         self._check_meta()
+        self._migrate()
+
+    def _migrate(self) -> None:
+        """Bring a store written by an older sb3_hhp to :data:`SCHEMA_VERSION`, one version at a time."""
+        if self._schema_version() >= SCHEMA_VERSION:
+            return
+        with self._transaction() as conn:  # another process may have migrated it meanwhile: read again
+            version = int(conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0])
+            for target in range(version + 1, SCHEMA_VERSION + 1):
+                for statement in _MIGRATIONS[target]:
+                    conn.execute(statement)
+                conn.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(target),))
 
     def _check_meta(self) -> None:
         meta = dict(self._conn.execute("SELECT key, value FROM meta").fetchall())
@@ -259,6 +288,9 @@ class PreferenceStore:
             )
         if version < 1:
             raise ValueError(f"{self.path!r} has an invalid store schema version {version}")
+
+    def _schema_version(self) -> int:
+        return int(self._read("SELECT value FROM meta WHERE key = 'schema_version'")[0][0])
 
     @contextmanager
     def _transaction(self) -> Iterator[sqlite3.Connection]:
@@ -342,6 +374,20 @@ class PreferenceStore:
             params = (int(limit),)
         return [_row_to_query(row) for row in self._read(sql, params)]
 
+    def query_info(self, query_id: str) -> dict:
+        """The ``info`` dict of a stored query, without decoding its arrays and images (``KeyError`` when unknown)."""
+        rows = self._read("SELECT info FROM queries WHERE query_id = ?", (query_id,))
+        if not rows:
+            raise KeyError(f"Unknown query id {query_id!r}")
+        return json.loads(rows[0][0])
+
+    def query_goals(self, query_id: str) -> tuple[int, int, float]:
+        """A stored query's ``(goal1, goal2, asked_at)``, without decoding its arrays (``KeyError`` when unknown)."""
+        rows = self._read("SELECT goal1, goal2, asked_at FROM queries WHERE query_id = ?", (query_id,))
+        if not rows:
+            raise KeyError(f"Unknown query id {query_id!r}")
+        return int(rows[0][0]), int(rows[0][1]), float(rows[0][2])
+
     def is_open(self, query_id: str) -> bool:
         """Whether ``query_id`` was asked and has no answer yet."""
         rows = self._read(
@@ -353,7 +399,12 @@ class PreferenceStore:
     # ---------------------------------------------------------------- answers
 
     def add_answer(
-        self, query_id: str, label: Union[Label, int, str], annotator: str, answered_at: Optional[float] = None
+        self,
+        query_id: str,
+        label: Union[Label, int, str],
+        annotator: str,
+        answered_at: Optional[float] = None,
+        response_s: Optional[float] = None,
     ) -> Answer:
         """Record the answer to a stored query, committed before returning.
 
@@ -365,6 +416,8 @@ class PreferenceStore:
         :param label: FIRST, SECOND, EQUAL or INCOMPARABLE, as a :class:`Label`, its name or its value
         :param annotator: who answered (non-empty)
         :param answered_at: UNIX time of the answer (now when ``None``)
+        :param response_s: seconds the person took from seeing the question to answering (>= 0; ``None``
+            when unknown, e.g. for a scripted oracle)
         :return: the stored answer
         """
         parsed = Label.parse(label)
@@ -372,6 +425,10 @@ class PreferenceStore:
             raise ValueError(f"annotator must be a non-empty string naming who answered, got {annotator!r}")
         annotator = annotator.strip()
         answered_at = time.time() if answered_at is None else float(answered_at)
+        if response_s is not None:
+            response_s = float(response_s)
+            if not (math.isfinite(response_s) and response_s >= 0):
+                raise ValueError(f"response_s must be a finite number of seconds >= 0 or None, got {response_s}")
         with self._transaction() as conn:
             if conn.execute("SELECT 1 FROM queries WHERE query_id = ?", (query_id,)).fetchone() is None:
                 raise KeyError(f"Unknown query id {query_id!r}: add the query before its answer")
@@ -379,8 +436,8 @@ class PreferenceStore:
             if previous is not None:
                 raise AlreadyAnswered(f"Query {query_id!r} was already answered by {previous[0]!r}")
             conn.execute(
-                "INSERT INTO answers (query_id, label, annotator, answered_at) VALUES (?, ?, ?, ?)",
-                (query_id, int(parsed), annotator, answered_at),
+                "INSERT INTO answers (query_id, label, annotator, answered_at, response_s) VALUES (?, ?, ?, ?, ?)",
+                (query_id, int(parsed), annotator, answered_at, response_s),
             )
         return Answer(query_id, parsed, annotator, answered_at)
 
@@ -435,13 +492,20 @@ class PreferenceStore:
         return int(self._read("SELECT COUNT(*) FROM queries WHERE run_id = ?", (run_id,))[0][0])
 
     def stats(self) -> dict:
-        """Counts: ``asked``, ``queued`` (open), ``answered``, ``per_annotator`` and ``per_label`` answers."""
+        """Counts: ``asked``, ``queued`` (open), ``answered``, ``per_annotator`` and ``per_label`` answers,
+        the run's ``budget`` (:meth:`set_query_budget`, ``None`` when unknown), and ``distinct``: how many
+        different questions (``info["signature"]``: an equivalent state and an unordered pair of sub-goals)
+        are among the ``signed`` queries that carry a signature (``None`` when none does)."""
         with self._lock:
             asked = int(self._conn.execute("SELECT COUNT(*) FROM queries").fetchone()[0])
             per_annotator = dict(
                 self._conn.execute("SELECT annotator, COUNT(*) FROM answers GROUP BY annotator ORDER BY annotator")
             )
             per_label = dict(self._conn.execute("SELECT label, COUNT(*) FROM answers GROUP BY label"))
+            distinct, signed = self._conn.execute(
+                "SELECT COUNT(DISTINCT s), COUNT(s) FROM (SELECT json_extract(info, '$.signature') AS s FROM queries "
+                "WHERE json_valid(info))"
+            ).fetchone()
         answered = sum(per_annotator.values())
         return {
             "asked": asked,
@@ -449,7 +513,39 @@ class PreferenceStore:
             "answered": answered,
             "per_annotator": {str(name): int(count) for name, count in per_annotator.items()},
             "per_label": {label.name: int(per_label.get(int(label), 0)) for label in Label},
+            "budget": self.query_budget(),
+            "distinct": int(distinct) if signed else None,
+            "signed": int(signed),
         }
+
+    def set_query_budget(self, budget: int) -> None:
+        """Record the run's total query budget, shown on the labeling page as "asked / budget".
+
+        :param budget: the total number of questions the run may ask (>= 0)
+        """
+        if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < 0:
+            raise ValueError(f"budget must be an integer >= 0, got {budget!r}")
+        with self._transaction() as conn:
+            conn.execute("INSERT OR REPLACE INTO meta VALUES ('query_budget', ?)", (str(int(budget)),))
+
+    def query_budget(self) -> Optional[int]:
+        """The query budget recorded by :meth:`set_query_budget` (``None`` when none was)."""
+        rows = self._read("SELECT value FROM meta WHERE key = 'query_budget'")
+        return int(rows[0][0]) if rows else None
+
+    def response_times(self, annotator: Optional[str] = None) -> list[float]:
+        """Seconds each answer took its person (answers recorded with ``response_s``), oldest first.
+
+        :param annotator: only this annotator's answers (everyone's when ``None``)
+        """
+        if annotator is None:
+            rows = self._read("SELECT response_s FROM answers WHERE response_s IS NOT NULL ORDER BY seq")
+        else:
+            rows = self._read(
+                "SELECT response_s FROM answers WHERE response_s IS NOT NULL AND annotator = ? ORDER BY seq",
+                (annotator,),
+            )
+        return [float(row[0]) for row in rows]
 
     def image_png(self, query_id: str, which: str) -> bytes:
         """The PNG bytes of a query's image.
@@ -483,7 +579,7 @@ class PreferenceStore:
         :param records: one dict per sub-goal: ``id`` (int), ``image`` (RGB uint8 array), ``found_at``
             (env step it was found), ``success_rate`` (its subpolicy's, in [0, 1], or ``None``),
             ``chosen_recently`` (how often the meta-controller chose it lately), ``mean_score``
-            (the preference predictor's mean score, or ``None``)
+            (the preference predictor's mean score, or ``None``), ``name`` (what it is, in words, or ``None``)
         """
         rows = []
         seen: set[int] = set()
@@ -491,6 +587,8 @@ class PreferenceStore:
             if "id" not in record or "image" not in record:
                 raise ValueError(f"Sub-goal record {index} needs at least 'id' and 'image', got keys {sorted(record)}")
             subgoal_id = int(record["id"])
+            if not 0 <= subgoal_id <= MAX_SUBGOAL_ID:
+                raise ValueError(f"Sub-goal id must be in [0, {MAX_SUBGOAL_ID}], got {subgoal_id}")
             if subgoal_id in seen:
                 raise ValueError(f"Sub-goal id {subgoal_id} appears twice in the records")
             seen.add(subgoal_id)
@@ -503,18 +601,23 @@ class PreferenceStore:
                     _optional_float(record.get("success_rate"), "success_rate"),
                     int(record.get("chosen_recently") or 0),
                     _optional_float(record.get("mean_score"), "mean_score"),
+                    _encode_info({} if record.get("name") is None else {"name": str(record["name"])}),
                 )
             )
         with self._transaction() as conn:
             conn.execute("DELETE FROM subgoals")
-            conn.executemany("INSERT INTO subgoals VALUES (?, ?, ?, ?, ?, ?)", rows)
+            conn.executemany(
+                "INSERT INTO subgoals (id, png, found_at, success_rate, chosen_recently, mean_score, info) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                rows,
+            )
 
     def subgoals(self, with_images: bool = True) -> list[dict]:
         """The sub-goal gallery records as written by :meth:`put_subgoals`, ordered by id.
 
         :param with_images: decode each ``image`` (RGB array); without, records have no ``image`` key
         """
-        columns = "id, found_at, success_rate, chosen_recently, mean_score" + (", png" if with_images else "")
+        columns = "id, found_at, success_rate, chosen_recently, mean_score, info" + (", png" if with_images else "")
         records = []
         for row in self._read(f"SELECT {columns} FROM subgoals ORDER BY id"):
             record = {
@@ -523,14 +626,17 @@ class PreferenceStore:
                 "success_rate": row[2],
                 "chosen_recently": int(row[3]),
                 "mean_score": row[4],
+                "name": json.loads(row[5]).get("name"),
             }
             if with_images:
-                record["image"] = decode_png(bytes(row[5]))
+                record["image"] = decode_png(bytes(row[6]))
             records.append(record)
         return records
 
     def subgoal_png(self, subgoal_id: int) -> bytes:
-        """The PNG bytes of sub-goal ``subgoal_id``'s image (``KeyError`` when unknown)."""
+        """The PNG bytes of sub-goal ``subgoal_id``'s image (``KeyError`` when unknown, out of range included)."""
+        if not 0 <= int(subgoal_id) <= MAX_SUBGOAL_ID:
+            raise KeyError(f"Unknown sub-goal id {subgoal_id}: ids are in [0, {MAX_SUBGOAL_ID}]")
         rows = self._read("SELECT png FROM subgoals WHERE id = ?", (int(subgoal_id),))
         if not rows:
             raise KeyError(f"Unknown sub-goal id {subgoal_id}")
@@ -561,8 +667,8 @@ class PreferenceStore:
                             "FROM queries q JOIN answers a ON a.query_id = q.query_id ORDER BY a.seq"
                         )
                         conn.execute(
-                            "INSERT INTO dst.answers (query_id, label, annotator, answered_at) "
-                            "SELECT query_id, label, annotator, answered_at FROM answers ORDER BY seq"
+                            "INSERT INTO dst.answers (query_id, label, annotator, answered_at, response_s) "
+                            "SELECT query_id, label, annotator, answered_at, response_s FROM answers ORDER BY seq"
                         )
                 finally:
                     self._conn.execute("DETACH DATABASE dst")
@@ -604,7 +710,7 @@ class PreferenceStore:
         path = os.fspath(path)
         if not os.path.isfile(path):
             raise FileNotFoundError(f"No preference dataset at {path!r}")
-        PreferenceStore(path).close()  # validates the file (format and schema version)
+        PreferenceStore(path).close()  # validates the file (format and schema version) and migrates it
         with self._lock:
             self._conn.execute("ATTACH DATABASE ? AS src", (path,))
             try:
@@ -616,8 +722,8 @@ class PreferenceStore:
                     )
                     before = conn.total_changes
                     conn.execute(
-                        "INSERT OR IGNORE INTO answers (query_id, label, annotator, answered_at) "
-                        "SELECT query_id, label, annotator, answered_at FROM src.answers ORDER BY seq"
+                        "INSERT OR IGNORE INTO answers (query_id, label, annotator, answered_at, response_s) "
+                        "SELECT query_id, label, annotator, answered_at, response_s FROM src.answers ORDER BY seq"
                     )
                     added = conn.total_changes - before
             finally:

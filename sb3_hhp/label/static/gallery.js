@@ -12,13 +12,18 @@
     figure.dataset.subgoalId = record.id;
     const img = document.createElement("img");
     img.src = HHP.withToken(record.image + "?r=" + stamp);
-    img.alt = "sub-goal " + record.id;
+    img.alt = record.name ? record.name : "sub-goal " + record.id;
     const caption = document.createElement("figcaption");
     const success = record.success_rate === null ? "–" : (100 * record.success_rate).toFixed(0) + " %";
-    caption.innerHTML =
-      `<b>#${record.id}</b> found at step ${record.found_at === null ? "–" : record.found_at}<br>` +
+    const name = document.createElement("span");
+    name.className = "name";
+    name.textContent = record.name || "(no name)";
+    const line = document.createElement("span");
+    line.textContent =
+      `#${record.id} found at step ${record.found_at === null ? "–" : record.found_at} · ` +
       `success ${success} · chosen ${record.chosen_recently} · score ${fmt(record.mean_score, 3)}`;
-    figure.append(img, caption);
+    caption.append(name, line);
+    figure.append(caption, img);
     return figure;
   }
 

@@ -3,41 +3,53 @@
 
 (() => {
   const $ = (id) => document.getElementById(id);
-  const LABEL_TEXT = { FIRST: "first", SECOND: "second", EQUAL: "equal", INCOMPARABLE: "can't tell" };
+  const LABEL_TEXT = { FIRST: "left", SECOND: "right", EQUAL: "equal", INCOMPARABLE: "can't tell" };
   const KEYS = { ArrowLeft: "FIRST", ArrowRight: "SECOND", "=": "EQUAL", x: "INCOMPARABLE", X: "INCOMPARABLE" };
+  const KINDS = ["state", "goal1", "goal2"];
 
   let annotator = "";
   let current = null;        // the question shown
   let windowS = 5;           // reply window, from the server
   let deadline = 0;          // ms timestamp when the countdown reaches 0 (0: not running)
+  let shownAt = 0;           // ms timestamp when the question became answerable
   let busy = false;          // an answer or a fetch is in flight
+  let showingFound = false;  // the sub-goals' images from where they were found, instead of drawn in the state
   let pollTimer = null;
 
   function setStatus(text) { $("status").textContent = text; }
+  const show_ = (value) => (value === null || value === undefined ? "–" : String(value));
 
   function setCounts(body) {
     if (!body) return;
+    if (body.asked !== undefined) $("asked").textContent = body.asked;
+    if (body.budget !== undefined) $("budget").textContent = show_(body.budget);
+    if (body.distinct !== undefined) {
+      $("distinct").textContent = body.distinct === null ? "–" : `${body.distinct} / ${body.signed}`;
+    }
     if (body.queued !== undefined) $("queued").textContent = body.queued;
     if (body.answered !== undefined) $("answers-all").textContent = body.answered;
     if (body.answered_by_you !== undefined) $("answers-mine").textContent = body.answered_by_you;
     else if (body.per_annotator) $("answers-mine").textContent = body.per_annotator[annotator] || 0;
+    if (body.your_median_s !== undefined) {
+      $("median-mine").textContent = body.your_median_s === null ? "–" : body.your_median_s.toFixed(1) + " s";
+    }
     if (body.reply_window_s) windowS = body.reply_window_s;
   }
 
   function enableButtons(on) {
     document.querySelectorAll(".buttons button").forEach((b) => { b.disabled = !on; });
+    if (on) $("btn-found").disabled = !(current && current.images.goal1_found && current.images.goal2_found);
   }
 
   function clearQuestion() {
     current = null;
     deadline = 0;
+    showingFound = false;
     $("question").dataset.queryId = "";
+    $("question").dataset.state = "idle";
     enableButtons(false);
-    for (const kind of ["state", "goal1", "goal2"]) {
-      $("img-" + kind).removeAttribute("src");
-    }
-    $("goal1-id").textContent = "";
-    $("goal2-id").textContent = "";
+    for (const kind of KINDS) $("img-" + kind).removeAttribute("src");
+    for (const id of ["goal1-id", "goal2-id", "goal1-name", "goal2-name"]) $(id).textContent = "";
     $("countdown").textContent = "–";
     $("countdown-bar").style.width = "0%";
   }
@@ -63,37 +75,65 @@
     if (result.status === 401) { setStatus("Wrong or missing token: open the address given by the server."); return; }
     if (!result.ok) { setStatus("Server error " + result.status + "; retrying…"); schedule(2000); return; }
     setCounts(result.body);
-    if (!result.body.query) {
+    await showOrWait(result.body.query);
+  }
+
+  async function showOrWait(query) {
+    if (!query) {
       setStatus("No question waiting; the next one appears here by itself.");
       schedule(1000);
       return;
     }
-    await show(result.body.query);
+    await show(query);
   }
 
-  async function show(query) {
-    current = query;
-    $("question").dataset.queryId = query.query_id;
-    $("goal1-id").textContent = "#" + query.goal1;
-    $("goal2-id").textContent = "#" + query.goal2;
+  function imageUrl(query, kind) {
+    const found = showingFound && kind !== "state" ? query.images[kind + "_found"] : null;
+    return found || query.images[kind];
+  }
+
+  async function setImages(query) {
     const loads = [];
-    for (const kind of ["state", "goal1", "goal2"]) {
+    for (const kind of KINDS) {
       const img = $("img-" + kind);
-      const url = query.images[kind];
+      const url = imageUrl(query, kind);
       if (url) {
         img.src = HHP.withToken(url);
         loads.push(img.decode().catch(() => null));
       } else {
         img.removeAttribute("src");
-        img.alt = "(no image)";
       }
     }
-    await Promise.all(loads);        // the countdown starts once the images are visible
+    await Promise.all(loads);
+  }
+
+  async function show(query) {
+    current = query;
+    showingFound = false;
+    $("question").dataset.queryId = query.query_id;
+    $("question").dataset.state = "loading";
+    $("goal1-id").textContent = "#" + query.goal1;
+    $("goal2-id").textContent = "#" + query.goal2;
+    $("goal1-name").textContent = query.goal1_name;
+    $("goal2-name").textContent = query.goal2_name;
+    await setImages(query);          // the countdown starts once the images are visible
     if (current !== query) return;
     enableButtons(true);
-    setStatus("In the current state, which sub-goal is better?");
-    deadline = performance.now() + windowS * 1000;
+    setStatus(query.drawn_in_state
+      ? "Both sub-goals are drawn in the current room: which one should the agent reach next?"
+      : "In the current state, which sub-goal is better?");
+    shownAt = performance.now();
+    $("question").dataset.shownAt = shownAt.toFixed(1);
+    $("question").dataset.state = "ready";
+    deadline = shownAt + windowS * 1000;
     tick();
+  }
+
+  async function toggleFound() {
+    if (!current || !current.images.goal1_found || !current.images.goal2_found) return;
+    showingFound = !showingFound;
+    $("btn-found").classList.toggle("on", showingFound);
+    await setImages(current);
   }
 
   function tick() {
@@ -108,6 +148,7 @@
   async function submit(label, timedOut = false) {
     if (!current || busy) return;
     const query = current;
+    const responseS = timedOut ? null : Math.max(0, (performance.now() - shownAt) / 1000);
     busy = true;
     deadline = 0;
     enableButtons(false);
@@ -116,7 +157,7 @@
       result = await HHP.api("/api/answer", {
         method: "POST",
         headers: { "Content-Type": "application/json" },
-        body: JSON.stringify({ query_id: query.query_id, label, annotator }),
+        body: JSON.stringify({ query_id: query.query_id, label, annotator, response_s: responseS, next: true }),
       });
     } catch (e) {
       busy = false;
@@ -126,11 +167,12 @@
     }
     busy = false;
     const item = document.createElement("li");
+    const pair = `${query.goal1_name} vs ${query.goal2_name}`;
     if (result.ok) {
       setCounts(result.body);
-      item.textContent = `#${query.goal1} vs #${query.goal2}: ${LABEL_TEXT[label]}` + (timedOut ? " (time ran out)" : "");
+      item.textContent = `${pair}: ${LABEL_TEXT[label]}` + (timedOut ? " (time ran out)" : "");
     } else if (result.status === 409 || result.status === 404) {
-      item.textContent = `#${query.goal1} vs #${query.goal2}: answered by someone else`;
+      item.textContent = `${pair}: answered by someone else`;
     } else {
       setStatus("The server refused the answer (" + result.status + "): " + JSON.stringify(result.body));
       enableButtons(true);
@@ -138,7 +180,8 @@
     }
     $("history").prepend(item);
     clearQuestion();
-    fetchNext();
+    if (result.ok && result.body.next !== undefined) await showOrWait(result.body.next);
+    else fetchNext();
   }
 
   function start() {
@@ -148,6 +191,7 @@
     annotator = name;
     try { localStorage.setItem("sb3_hhp.annotator", name); } catch (e) { /* private mode */ }
     $("answers-mine").textContent = "0";
+    $("median-mine").textContent = "–";
     clearQuestion();
     fetchNext();
   }
@@ -157,16 +201,18 @@
       if (event.key === "Enter") { $("annotator").blur(); start(); }
       return;
     }
+    if ((event.key === "e" || event.key === "E") && current) { event.preventDefault(); toggleFound(); return; }
     const label = KEYS[event.key];
     if (label && current) { event.preventDefault(); submit(label); }
   });
   $("annotator").addEventListener("change", start);
-  document.querySelectorAll(".buttons button").forEach((button) => {
+  document.querySelectorAll(".buttons button[data-label]").forEach((button) => {
     button.addEventListener("click", () => submit(button.dataset.label));
   });
+  $("btn-found").addEventListener("click", toggleFound);
   $("gallery-link").href = HHP.withToken("/gallery");
 
-  // Keep the queue length fresh while a question is shown.
+  // Keep the counts fresh while a question is shown.
   setInterval(async () => {
     if (!annotator) return;
     try {
