@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch as th
 
-from sb3_hhp.preferences.rewards import PreferenceReturnNormalizer, meta_reward, pseudo_reward, subpolicy_reward
+from sb3_hhp.hierarchy.rewards import pseudo_reward, subpolicy_reward
+from sb3_hhp.preferences.rewards import PreferenceReturnNormalizer, meta_reward
 
 
 def test_meta_reward_eq3_by_hand():

@@ -20,7 +20,7 @@ import numpy as np
 import torch as th
 
 from sb3_hhp.hierarchy.options import EpisodeTrace
-from sb3_hhp.oracles.base import Query
+from sb3_hhp.preferences.types import Query
 
 
 def _key_json(key: object) -> list:

@@ -24,7 +24,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 from gymnasium import spaces
 
-from sb3_hhp.preferences.rewards import pseudo_reward, subpolicy_reward
+from sb3_hhp.hierarchy.rewards import pseudo_reward, subpolicy_reward
 
 
 class GoalTrees:

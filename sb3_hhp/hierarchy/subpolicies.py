@@ -58,6 +58,7 @@ class Subpolicy:
 
     :param model: the SB3 off-policy model (its ``learn`` is never called)
     :param exploration_steps: own steps over which epsilon decays (discrete) or the noise is kept (continuous)
+
     The model's own ``train_freq`` (counted in steps) and ``gradient_steps`` say how often it learns
     (1 and 1 in the paper).
     """
@@ -293,7 +294,7 @@ class PerGoalLearners:
                 truncated: np.ndarray, gave_up: np.ndarray, acting: np.ndarray, intrinsic: np.ndarray) -> None:
         """Each env's step: the acting subpolicy stores it with its eq. 5 / 6 reward and learns; with
         ``share_experience`` every other one stores it relabelled with its own reward (one-step)."""
-        from sb3_hhp.preferences.rewards import pseudo_reward, subpolicy_reward
+        from sb3_hhp.hierarchy.rewards import pseudo_reward, subpolicy_reward
 
         for i, key in enumerate(keys):
             done = np.array([self.achieved(key, goal_key) for goal_key in self.goal_keys], dtype=bool)

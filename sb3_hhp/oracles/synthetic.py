@@ -125,8 +125,8 @@ class SyntheticOracle(OwnRandomState, Oracle):
         then obtained the undiscounted return ``returns[i]`` (e.g. the sum of extrinsic rewards to the
         episode's end). The oldest triples are dropped beyond ``buffer_size``.
 
-        :param states: raw states (N, *obs_shape)
-        :param goals: raw goal observations (N, *obs_shape)
+        :param states: raw states ``(N, *obs_shape)``
+        :param goals: raw goal observations ``(N, *obs_shape)``
         :param returns: undiscounted returns (N,)
         """
         shape = tuple(self.observation_space.shape)
@@ -195,8 +195,8 @@ class SyntheticOracle(OwnRandomState, Oracle):
     def predict(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """Estimated average undiscounted returns ``V(s, g)`` without dropout.
 
-        :param states: raw states (N, *obs_shape)
-        :param goals: raw goal observations (N, *obs_shape)
+        :param states: raw states ``(N, *obs_shape)``
+        :param goals: raw goal observations ``(N, *obs_shape)``
         :return: estimates, shape (N,)
         """
         self.network.eval()

@@ -24,20 +24,13 @@ from stable_baselines3.common.utils import get_device
 from torch import nn
 
 from sb3_hhp.preferences.seeding import OwnRandomState
+from sb3_hhp.preferences.types import Label
 
 HEADS = ("linear", "sigmoid", "relu")
 ARCHITECTURES = ("auto", "cnn", "mlp")
 SPREADS = ("std", "var")
 # Smallest image side that "auto" sends through the convolutional branch (NatureCNN's minimum).
 MIN_CNN_SIDE = 36
-
-
-
-def _label_type() -> type:
-    # Imported on use: sb3_hhp.oracles imports this module (the synthetic oracle reuses PreferenceNetwork).
-    from sb3_hhp.oracles.base import Label
-
-    return Label
 
 
 def _check_int(name: str, value: Any, minimum: int) -> None:
@@ -170,7 +163,7 @@ class PreferenceNetwork(nn.Module):
             ) from error
 
     def preprocess(self, obs: torch.Tensor) -> torch.Tensor:
-        """Turn a batch of raw observations (B, *obs_shape) into the branch input (float, images in [0, 1])."""
+        """Turn a batch of raw observations ``(B, *obs_shape)`` into the branch input (float, images in [0, 1])."""
         if tuple(obs.shape[1:]) != tuple(self.observation_space.shape):
             raise ValueError(
                 f"Expected a batch of observations of shape (B, {', '.join(map(str, self.observation_space.shape))}), "
@@ -184,8 +177,8 @@ class PreferenceNetwork(nn.Module):
     def forward(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """Scores ``p_hat(s, g)``.
 
-        :param states: raw states (B, *obs_shape), or (1, *obs_shape) to pair one state with every goal
-        :param goals: raw goal observations (B, *obs_shape), or (1, *obs_shape)
+        :param states: raw states ``(B, *obs_shape)``, or ``(1, *obs_shape)`` to pair one state with every goal
+        :param goals: raw goal observations ``(B, *obs_shape)``, or ``(1, *obs_shape)``
         :return: the scores, shape (B,)
         """
         state_features = self.state_branch(self.preprocess(states))
@@ -316,8 +309,8 @@ class PreferencePredictor(OwnRandomState):
     def score(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """The preference bonus ``b = p_hat(s, g)`` (Algorithm 1, line 13), without dropout.
 
-        :param states: raw states (N, *obs_shape) (or a single one, paired with every goal)
-        :param goals: raw goal observations (N, *obs_shape) (or a single one)
+        :param states: raw states ``(N, *obs_shape)`` (or a single one, paired with every goal)
+        :param goals: raw goal observations ``(N, *obs_shape)`` (or a single one)
         :return: scores, shape (N,)
         """
         states_t, goals_t, n = self._pairs(states, goals)
@@ -340,8 +333,8 @@ class PreferencePredictor(OwnRandomState):
         ``mask_batch_size`` rows. Without dropout (or with a single mask) every mask gives the same
         score, so the spread is 0.
 
-        :param states: raw states (N, *obs_shape) (or a single one, paired with every goal)
-        :param goals: raw goal observations (N, *obs_shape) (or a single one)
+        :param states: raw states ``(N, *obs_shape)`` (or a single one, paired with every goal)
+        :param goals: raw goal observations ``(N, *obs_shape)`` (or a single one)
         :return: confidences, shape (N,)
         """
         states_t, goals_t, n = self._pairs(states, goals)
@@ -386,13 +379,12 @@ class PreferencePredictor(OwnRandomState):
     def add(self, state: np.ndarray, goal1: np.ndarray, goal2: np.ndarray, label: Any) -> bool:
         """Store one labelled tuple ``(s, g1, g2, v)`` in the preference buffer ``R`` (FIFO).
 
-        :param state: raw state observation (*obs_shape)
+        :param state: raw state observation ``(*obs_shape)``
         :param goal1: raw observation of the first sub-goal (the meta-controller's choice)
         :param goal2: raw observation of the second sub-goal
-        :param label: a :class:`~sb3_hhp.oracles.base.Label` or anything ``Label.parse`` reads
+        :param label: a :class:`~sb3_hhp.preferences.types.Label` or anything ``Label.parse`` reads
         :return: True if stored; False for INCOMPARABLE, which is never trained on
         """
-        Label = _label_type()
         label = Label.parse(label)
         if label == Label.INCOMPARABLE:
             return False
@@ -421,9 +413,9 @@ class PreferencePredictor(OwnRandomState):
     ) -> torch.Tensor:
         """Bradley-Terry cross-entropy (eq. 1, 2), with the network in its current mode.
 
-        :param states: raw states (B, *obs_shape)
-        :param goals1: raw observations of the first sub-goals (B, *obs_shape)
-        :param goals2: raw observations of the second sub-goals (B, *obs_shape)
+        :param states: raw states ``(B, *obs_shape)``
+        :param goals1: raw observations of the first sub-goals ``(B, *obs_shape)``
+        :param goals2: raw observations of the second sub-goals ``(B, *obs_shape)``
         :param targets: (v_0, v_1) per tuple (B, 2): (1, 0) FIRST, (0, 1) SECOND, (0.5, 0.5) EQUAL
         :return: the mean loss over the batch (a scalar)
         """
@@ -477,7 +469,6 @@ class PreferencePredictor(OwnRandomState):
 
     def accuracy(self) -> float:
         """Fraction of the buffer's FIRST/SECOND tuples ordered right by the network without dropout (nan if none)."""
-        Label = _label_type()
         labels = self._labels[: self._size]
         indices = np.flatnonzero((labels == Label.FIRST) | (labels == Label.SECOND))
         if len(indices) == 0:
