@@ -519,11 +519,11 @@ def check_env_id(env_id: Optional[str], gym_packages: Sequence[str] = ()) -> str
     """
     import gymnasium as gym
 
-    with contextlib.redirect_stderr(io.StringIO()):  # gymnasium-robotics prints a notice on Adroit envs at import
-        import gymnasium_robotics
-        import rl_zoo3.import_envs  # noqa: F401  registers MiniGrid, ALE, ...
+    from sb3_hhp.extras import missing_extra_hint, register_fetch_envs
 
-    gym.register_envs(gymnasium_robotics)  # the Fetch tasks (rl_zoo3 does not register them)
+    register_fetch_envs()  # the Fetch tasks, with the [fetch] extra (rl_zoo3 does not register them)
+    with contextlib.redirect_stderr(io.StringIO()):  # gymnasium-robotics prints a notice on Adroit envs at import
+        import rl_zoo3.import_envs  # noqa: F401  registers MiniGrid, ALE, ...
 
     if not env_id:
         raise ConfigError("--env ENV is required (e.g. --env MiniGrid-DoorKey-5x5-v0)")
@@ -535,7 +535,9 @@ def check_env_id(env_id: Optional[str], gym_packages: Sequence[str] = ()) -> str
     if env_id not in gym.envs.registry:
         close = difflib.get_close_matches(env_id, list(gym.envs.registry), n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise ConfigError(f"Unknown env id {env_id!r}{hint}: not in the gymnasium registry")
+        extra = missing_extra_hint(env_id)
+        install = f"; it comes with an extra: {extra}" if extra else ""
+        raise ConfigError(f"Unknown env id {env_id!r}{hint}: not in the gymnasium registry{install}")
     return env_id
 
 
@@ -545,8 +547,9 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
     :param argv: the arguments (default ``sys.argv[1:]``)
     :return: the summary, or None when nothing was trained (``-optimize``)
     """
-    with contextlib.redirect_stderr(io.StringIO()):  # gymnasium-robotics prints a notice on Adroit envs at import
-        import gymnasium_robotics  # noqa: F401  (rl_zoo3 imports it too)
+    from sb3_hhp.extras import register_fetch_envs
+
+    register_fetch_envs()  # imported first, quietly: gymnasium-robotics prints a notice on Adroit envs at import
     import rl_zoo3.train
 
     from sb3_hhp.oracles.registry import ORACLE_NAMES

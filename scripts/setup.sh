@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # One-time set-up: Debian packages (headless Chromium for the browser tests, Mesa EGL for MuJoCo
 # rendering), a virtual environment in .venv, the CPU build of torch 2.13.0 pinned through
-# constraints.txt (an unpinned torch would pull several GB of CUDA), then the package with all extras.
+# constraints.txt (an unpinned torch would pull several GB of CUDA), then the package with all extras
+# (Atari, Fetch, the labeling server, plots, tests) and the documentation tools.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if [ ! -x /usr/bin/chromium ] || [ ! -e /usr/lib/x86_64-linux-gnu/libEGL_mesa.so.0 ]; then
@@ -13,4 +14,4 @@ fi
 . .venv/bin/activate
 python -m pip install -q --upgrade pip
 python -m pip install -q torch==2.13.0
-python -m pip install -q -c constraints.txt -e ".[all]"
+python -m pip install -q -c constraints.txt -e ".[all,docs]"

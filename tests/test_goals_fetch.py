@@ -2,7 +2,6 @@
 reads, the drawing, and HhP end to end on FetchReach with DDPG subpolicies (sb3_hhp.goals.fetch)."""
 
 import gymnasium as gym
-import gymnasium_robotics
 import minigrid  # noqa: F401  (registers the MiniGrid envs)
 import numpy as np
 import pytest
@@ -15,6 +14,7 @@ from sb3_hhp.hierarchy.options import is_success as _is_success
 from sb3_hhp.goals import SUCCESS_KEY, FetchFlatObs, FetchGoalSpace, make_goal_space, wrap_env
 from sb3_hhp.oracles import FetchScriptedOracle, Label, Query
 
+gymnasium_robotics = pytest.importorskip("gymnasium_robotics", reason='needs the [fetch] extra: pip install "sb3_hhp[fetch]"')
 gym.register_envs(gymnasium_robotics)
 
 REACH = "FetchReach-v4"
