@@ -168,7 +168,7 @@ def test_default_config_is_found_from_the_package() -> None:
     table = yaml.safe_load(path.read_text())
     entry = table["minigrid"]
     assert entry["env_wrapper"] == "sb3_hhp.goals.minigrid.MiniGridEgocentricObs"
-    assert entry["n_envs"] == 1 and entry["policy"] == "MlpPolicy" and entry["query_budget"] == 100
+    assert entry["n_envs"] == 8 and entry["policy"] == "MlpPolicy" and entry["query_budget"] == 100
     for key, hyperparams in table.items():  # every shipped entry passes the key check
         validate_hyperparams(dict(hyperparams), key)
 

@@ -70,7 +70,7 @@ class SubgoalDiscovery:
     ) -> list[int]:
         """Indices of ``states`` to add as sub-goals (at most ``max_new``, lowest rho first).
 
-        :param states: the episode's visited states (N, *obs_shape)
+        :param states: the episode's visited states ``(N, *obs_shape)``
         :param keys: their sub-goal keys
         :param rho: their novelty progress (eq. 8), required for "csd"
         :param visits: visit counts of every key over training

@@ -83,6 +83,7 @@ class DoubleDQN(DQN):
     :param prioritized_replay_alpha: Prioritization exponent in ``[0, 1]``.
     :param prioritized_replay_beta: Importance-sampling exponent in ``[0, 1]``.
     :param prioritized_replay_eps: Constant ``> 0`` added to ``|td error|`` in the priorities.
+
     ``n_steps`` > 1 gives n-step returns under prioritized replay too (the buffer computes them).
 
     Hooks for subclasses and the hierarchical algorithm:

@@ -173,6 +173,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         calls choosable there (:meth:`~sb3_hhp.goals.GoalSpace.choosable`: not already achieved; on MiniGrid,
         also a milestone); in acting, exploring and the TD target alike (see the README's Design)
     :param record_images: render states for people (default: only when the oracle is a person)
+
     Other parameters are those of :class:`~sb3_hhp.dqn.DoubleDQN` (the meta-controller); the meta
     replay buffer R_H holds ``buffer_size`` sub-goal choices, and ``target_update_interval`` counts them.
     """
@@ -437,7 +438,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
             percentile=self.csd_percentile, min_visits=self.csd_min_visits,
             similarity_threshold=self.b_similarity, seed=self.seed,
         )
-        self.store = PreferenceStore(self.preference_db or ":memory:")
+        self.store = PreferenceStore(self.preference_db or ":memory:", create=True)
+        self.store.set_query_budget(self.query_budget)  # shown on the labeling page as "asked / budget"
         self.oracle = self._make_oracle()
         if self.record_images is None:
             self.record_images = self.oracle_spec in ("web", "terminal") or self.preference_db is not None
@@ -620,8 +622,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
             ended, episodes = options.step()
             self.num_timesteps += options.num_envs
             num_collected_steps += 1
-            for option in ended:
-                self._store_choice(replay_buffer, option)
+            if ended:
+                self._store_choices(replay_buffer, ended)
             callback.update_locals(locals())
             if not callback.on_step():
                 return RolloutReturn(num_collected_steps * options.num_envs, num_collected_episodes, continue_training=False)
@@ -638,18 +640,20 @@ class HhP(BetweenEpisodes, DoubleDQN):
         callback.on_rollout_end()
         return RolloutReturn(num_collected_steps * options.num_envs, num_collected_episodes, True)
 
-    def _store_choice(self, replay_buffer: ReplayBuffer, option: Any) -> None:
-        """One sub-goal choice that ended into R_H (line 23): (s, g, R_e, s', terminated), a time limit as a
-        timeout; the preference bonus of the choice updates sigma(R_p) (line 12)."""
-        obs = maybe_transpose(option.obs[None], self.observation_space)
-        next_obs = maybe_transpose(option.next_obs[None], self.observation_space)
-        done = option.terminated or option.truncated
-        info = {"TimeLimit.truncated": option.truncated and not option.terminated}
-        replay_buffer.add(obs, next_obs, np.array([[option.goal]]), np.array([option.extrinsic_return], dtype=np.float32),
-                          np.array([done]), [info])
+    def _store_choices(self, replay_buffer: ReplayBuffer, ended: list) -> None:
+        """The sub-goal choices that ended in a step, into R_H one by one (line 23): (s, g, R_e, s', terminated), a
+        time limit as a timeout; their preference bonuses, scored in one batch, update sigma(R_p) (line 12)."""
+        for option in ended:
+            obs = maybe_transpose(option.obs[None], self.observation_space)
+            next_obs = maybe_transpose(option.next_obs[None], self.observation_space)
+            done = option.terminated or option.truncated
+            info = {"TimeLimit.truncated": option.truncated and not option.terminated}
+            replay_buffer.add(obs, next_obs, np.array([[option.goal]]),
+                              np.array([option.extrinsic_return], dtype=np.float32), np.array([done]), [info])
+            self._on_step()
         if self.use_preferences and len(self.predictor) > 0:
-            self.return_normalizer.update(self.preference_bonus(option.obs[None], np.asarray([option.goal])))
-        self._on_step()
+            states = np.stack([option.obs for option in ended])
+            self.return_normalizer.update(self.preference_bonus(states, np.array([option.goal for option in ended])))
 
     def _on_step(self) -> None:
         """After each sub-goal choice stored: the target network every ``target_update_interval`` choices, and

@@ -1,0 +1,34 @@
+"""Sphinx configuration of the sb3_hhp documentation: ``sphinx-build -W -b html docs docs/_build/html``."""
+
+import os
+import sys
+
+sys.path.insert(0, os.path.abspath(".."))
+
+import sb3_hhp  # noqa: E402
+
+project = "sb3_hhp"
+author = "sb3_hhp contributors"
+copyright = "sb3_hhp contributors"
+version = release = sb3_hhp.__version__
+
+extensions = [
+    "sphinx.ext.autodoc",
+    "sphinx.ext.autosummary",
+    "sphinx.ext.mathjax",
+    "sphinx.ext.viewcode",
+    "myst_parser",
+]
+source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
+# history.md is the lab record of earlier designs (its figures are not part of the site)
+exclude_patterns = ["_build", "history.md"]
+myst_heading_anchors = 3
+
+autodoc_member_order = "bysource"
+autodoc_typehints = "description"
+# Only the package's own docstrings: methods inherited from gymnasium or SB3 keep their own documentation.
+autodoc_inherit_docstrings = False
+autodoc_default_options = {"members": True, "show-inheritance": True}
+
+html_theme = "sphinx_rtd_theme"
+html_title = f"sb3_hhp {release}"
