@@ -1,68 +1,209 @@
-"""Gather benchmark JSONs into a Markdown table and a learning-curve plot.
+"""Report a sweep of ``python -m benchmarks.run``: a Markdown table and one learning-curve plot per env.
 
-    python benchmarks/report.py benchmarks/results/doorkey8x8_partial --plot benchmarks/results/doorkey8x8_partial/curves.png
+    python benchmarks/report.py benchmarks/results/doorkey8x8/results.csv
+    python benchmarks/report.py            # every benchmarks/results/*/results.csv
+
+Next to each ``results.csv`` it writes ``benchmark.md`` (one row per env x variant: mean ± std over seeds of
+the success rate of the deterministic and of the stochastic policy on the fresh evaluation episodes, of the
+labels used and of the wall time) and ``curves_<env>.png`` (success rate at the periodic evaluations against
+env steps: the mean over seeds, a band of ± one std, a line per variant), and prints the table.
+Needs the ``plots`` extra (pandas, matplotlib).
 """
 
 import argparse
-import json
-import pathlib
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import pandas as pd
+
+#: variant -> name in tables and legends, in the order of tables and plots
+VARIANT_NAMES = {"hhp": "HhP", "dqn": "DQN", "ppo": "PPO", "ppo_rnd": "PPO + RND"}
+#: columns a results file must have
+REQUIRED_COLUMNS = ("env", "variant", "seed", "steps", "success_det", "success_stoch", "labels_used", "wall_seconds")
+#: points of the common step grid the seeds' curves are interpolated onto
+CURVE_GRID_POINTS = 100
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("folder", help="folder of result JSONs written by benchmarks/doorkey.py")
-    parser.add_argument("--plot", default=None, help="write a success-rate-over-steps plot here (PNG)")
-    parser.add_argument("--subgoals", nargs="*", default=None, metavar="NAME",
-                        help="also tabulate, per HhP run, when these sub-goals were found and their success rate at the "
-                             "last evaluation (needs evaluations that list sub-goals, as doorkey.py writes them)")
-    args = parser.parse_args()
-    results = [json.loads(path.read_text()) for path in sorted(pathlib.Path(args.folder).glob("*.json"))]
-    results = [r for r in results if "evaluations" in r]
-    several_envs = len({r["env"] for r in results}) > 1
-    print("| run | seed | steps | fps | success rate | mean return | eval episodes | queries | sub-goals |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-    for r in results:
-        name = r["algo"] + (f" ({r['tag']})" if r.get("tag") else "")
-        if several_envs:
-            name += " " + r["env"].replace("MiniGrid-", "").replace("-v0", "")
-        queries = f"{r['queries_used']}/{r['query_budget']}" if "queries_used" in r else "-"
-        print(f"| {name} | {r['seed']} | {r['total_timesteps']} | {r['fps']} | {r['success_rate']:.2f} | "
-              f"{r['mean_return']:.3f} | {r['eval_episodes']} | {queries} | {r.get('num_subgoals', '-')} |")
-    if args.subgoals:
-        print()
-        print("| run | seed | steps | " + " | ".join(args.subgoals) + " |")
-        print("| --- " * (3 + len(args.subgoals)) + "|")
-        for r in results:
-            found = r["evaluations"][-1].get("subgoals") if r["evaluations"] else None
-            if found is None:
+def variant_name(variant: str) -> str:
+    return VARIANT_NAMES.get(variant, variant)
+
+
+def _variant_order(variants: Sequence[str]) -> list[str]:
+    known = [variant for variant in VARIANT_NAMES if variant in set(variants)]
+    return known + sorted(set(variants) - set(known))
+
+
+def read_results(csv_path: Path) -> pd.DataFrame:
+    """A sweep's ``results.csv``, checked for the columns the report reads."""
+    if not csv_path.is_file():
+        raise SystemExit(f"No results file {csv_path}: run python -m benchmarks.run CONFIG first (or pass its results.csv)")
+    results = pd.read_csv(csv_path)
+    missing = [column for column in REQUIRED_COLUMNS if column not in results.columns]
+    if missing:
+        raise SystemExit(f"{csv_path} lacks the columns {', '.join(missing)}: not written by python -m benchmarks.run")
+    return results
+
+
+def _mean_std(values: pd.Series, digits: int = 2, scale: float = 1.0) -> str:
+    """``mean ± std`` (sample std over seeds; the mean alone for one seed; "–" when there is no value)."""
+    values = values.dropna().astype(float) / scale
+    if values.empty:
+        return "–"
+    if len(values) == 1:
+        return f"{values.iloc[0]:.{digits}f}"
+    return f"{values.mean():.{digits}f} ± {values.std(ddof=1):.{digits}f}"
+
+
+def _time_unit(seconds: pd.Series) -> tuple[str, float]:
+    longest = float(seconds.max()) if len(seconds.dropna()) else 0.0
+    if longest < 600:
+        return "s", 1.0
+    if longest < 36_000:
+        return "min", 60.0
+    return "h", 3600.0
+
+
+def markdown_table(results: pd.DataFrame) -> str:
+    """One row per env x variant: seeds, steps, success (deterministic, stochastic), labels used, wall time.
+
+    :param results: the rows of ``results.csv``
+    :return: the table in Markdown (GitHub's pipe tables)
+    """
+    unit, scale = _time_unit(results["wall_seconds"])
+    header = [
+        "env", "variant", "seeds", "steps", "success (deterministic)", "success (stochastic)", "labels used",
+        f"wall time ({unit})",
+    ]
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join([" --- "] * 2 + [" ---: "] * (len(header) - 2)) + "|"]
+    for env in sorted(results["env"].unique()):
+        rows = results[results["env"] == env]
+        for variant in _variant_order(list(rows["variant"].unique())):
+            runs = rows[rows["variant"] == variant]
+            steps = sorted(int(value) for value in runs["steps"].unique())
+            cells = [
+                env,
+                variant_name(variant),
+                str(runs["seed"].nunique()),
+                " / ".join(f"{value:,}" for value in steps),
+                _mean_std(runs["success_det"]),
+                _mean_std(runs["success_stoch"]),
+                _mean_std(runs["labels_used"], digits=0),
+                _mean_std(runs["wall_seconds"], digits=1 if unit != "s" else 0, scale=scale),
+            ]
+            lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def mean_curve(curves: Sequence[pd.DataFrame], column: str = "success") -> Optional[pd.DataFrame]:
+    """The seeds' curves on one step grid (linear interpolation, within the steps every seed covers): mean, std.
+
+    :param curves: one DataFrame per seed, with ``steps`` and ``column``
+    :param column: the value to average
+    :return: ``steps``, ``mean``, ``std`` (0 for a single seed), or None without points
+    """
+    curves = [curve.sort_values("steps") for curve in curves if len(curve)]
+    if not curves:
+        return None
+    if len(curves) == 1:
+        curve = curves[0]
+        return pd.DataFrame({"steps": curve["steps"], "mean": curve[column], "std": 0.0})
+    low = max(float(curve["steps"].iloc[0]) for curve in curves)
+    high = min(float(curve["steps"].iloc[-1]) for curve in curves)
+    if high < low:
+        return None
+    grid = np.linspace(low, high, CURVE_GRID_POINTS) if high > low else np.array([low])
+    values = np.stack([np.interp(grid, curve["steps"], curve[column]) for curve in curves])
+    return pd.DataFrame({"steps": grid, "mean": values.mean(axis=0), "std": values.std(axis=0, ddof=1)})
+
+
+def plot_curves(results: pd.DataFrame, folder: Path) -> list[Path]:
+    """One plot per env with learning curves: success rate against env steps, mean ± std over seeds per variant.
+
+    :param results: the rows of ``results.csv`` (``curve``: a path relative to ``folder``, or empty)
+    :param folder: the folder of ``results.csv``, where the plots go
+    :return: the plots written
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+    if "curve" not in results.columns:
+        return written
+    for env in sorted(results["env"].unique()):
+        rows = results[(results["env"] == env) & results["curve"].notna()]
+        if rows.empty:
+            continue
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for variant in _variant_order(list(rows["variant"].unique())):
+            paths = [folder / path for path in rows[rows["variant"] == variant]["curve"]]
+            curves = [pd.read_csv(path) for path in paths if path.is_file()]
+            curve = mean_curve(curves)
+            if curve is None:
                 continue
-            cells = []
-            for name in args.subgoals:
-                entry = found.get(name)
-                if entry is None:
-                    cells.append("not found")
-                else:
-                    rate = "-" if entry["success"] is None else f"{entry['success']:.2f}"
-                    cells.append(f"{rate} (found at {entry['found_at']:,})")
-            print(f"| {r['algo']} ({r.get('tag', '')}) | {r['seed']} | {r['evaluations'][-1]['timesteps']:,} | " + " | ".join(cells) + " |")
-    if args.plot:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(7, 4))
-        for r in results:
-            steps = [e["timesteps"] for e in r["evaluations"]]
-            success = [e["success_rate"] for e in r["evaluations"]]
-            ax.plot(steps, success, marker="o", label=f"{r['algo']} {r.get('tag', '')} {r['env'].replace('MiniGrid-', '')} s{r['seed']}")
-        ax.set_xlabel("primitive env steps")
-        ax.set_ylabel("success rate (fresh seeds)")
+            label = f"{variant_name(variant)} ({len(curves)} seed{'s' if len(curves) > 1 else ''})"
+            (line,) = ax.plot(curve["steps"], curve["mean"], label=label)
+            ax.fill_between(
+                curve["steps"], (curve["mean"] - curve["std"]).clip(0, 1), (curve["mean"] + curve["std"]).clip(0, 1),
+                color=line.get_color(), alpha=0.2, linewidth=0,
+            )
+        ax.set_title(env)
+        ax.set_xlabel("env steps")
+        ax.set_ylabel("success rate (periodic evaluations)")
         ax.set_ylim(-0.05, 1.05)
-        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
         fig.tight_layout()
-        fig.savefig(args.plot, dpi=100)
+        path = folder / f"curves_{env.replace('/', '-')}.png"
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def report(csv_path: Path) -> tuple[str, Path, list[Path]]:
+    """Write ``benchmark.md`` and the plots next to ``csv_path``.
+
+    :return: the table, the Markdown file and the plots
+    """
+    results = read_results(csv_path)
+    table = markdown_table(results)
+    episodes = sorted(int(value) for value in results["eval_episodes"].dropna().unique()) if "eval_episodes" in results else []
+    note = (
+        f"Mean ± std over seeds. Success: fraction of {' / '.join(map(str, episodes)) or 'the'} fresh evaluation "
+        "episodes (seeds seed + 10000, ...) solved by the deterministic and by the stochastic policy. Labels: "
+        "preference queries answered (HhP only). Wall time: training and evaluation of one run.\n"
+    )
+    markdown = csv_path.parent / "benchmark.md"
+    plots = plot_curves(results, csv_path.parent)
+    figures = "".join(f"\n![{path.stem}]({path.name})\n" for path in plots)
+    markdown.write_text(f"# Results of {csv_path.parent.name}\n\n{table}\n{note}{figures}")
+    return table, markdown, plots
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument(
+        "results", nargs="*", help="results.csv files (or their folders); default: every benchmarks/results/*/results.csv"
+    )
+    args = parser.parse_args(argv)
+    paths = [Path(path) for path in args.results]
+    paths = [path / "results.csv" if path.is_dir() else path for path in paths]
+    if not paths:
+        paths = sorted((Path(__file__).resolve().parent / "results").glob("*/results.csv"))
+        if not paths:
+            print("No benchmarks/results/*/results.csv yet: run python -m benchmarks.run CONFIG first", file=sys.stderr)
+            return 1
+    for path in paths:
+        table, markdown, plots = report(path)
+        print(table)
+        print(f"Written: {markdown}" + "".join(f", {plot}" for plot in plots))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

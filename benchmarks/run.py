@@ -1,0 +1,559 @@
+"""Run a sweep of experiments (env x variant x seed) in parallel and gather one CSV of results.
+
+    python -m benchmarks.run benchmarks/experiments/doorkey8x8.yml --jobs 2
+    python benchmarks/report.py benchmarks/results/doorkey8x8/results.csv
+
+Variants:
+
+- ``hhp``: ``python -m sb3_hhp.train --env ENV --oracle scripted -n STEPS --seed S --eval-both ...``, the
+  command users train with (hyperparameters from ``hhp_conf``, default ``hyperparams/hhp.yml``);
+- ``dqn``, ``ppo``: SB3's DQN and PPO, flat, on the observation HhP sees (:func:`sb3_hhp.goals.wrap_env`);
+- ``ppo_rnd``: PPO with RND's intrinsic reward added to the env's (:class:`sb3_hhp.curiosity.VecRNDReward`),
+  the paper's baseline.
+
+The baselines take their settings from ``baselines_conf`` (default ``hyperparams/baselines.yml``). Every
+variant trains for the sweep's step budget (primitive env steps), then is evaluated the way
+``sb3_hhp.train`` evaluates HhP (:func:`sb3_hhp.train.evaluate`): ``eval_episodes`` fresh envs seeded
+``seed + 10000``, ``seed + 10001``, ..., with the deterministic and with the stochastic policy. Learning
+curves come from periodic evaluations every ``eval_freq`` steps (``curve_episodes`` episodes each,
+stochastic policy on MiniGrid, as RL Zoo evaluates there), written to ``curves/<run>.csv``.
+
+Each experiment runs in a fresh worker process with one torch thread (``--jobs`` at once). The sweep is
+resumable: an experiment whose row is already in ``results.csv`` is skipped, so an interrupted sweep is
+finished by running the same command again; a failed one leaves no row, its log in ``logs/<run>.log``.
+Output folder (``--out``, default ``benchmarks/results/<name>``)::
+
+    results.csv        one row per env x variant x seed
+    runs/<run>.json    each run's summary (sb3_hhp.train's summary for HhP)
+    curves/<run>.csv   success rate and mean return at each periodic evaluation
+    logs/<run>/        each run's log folder, logs/<run>.log its output
+
+Sweep file (YAML)::
+
+    name: doorkey8x8                 # default output folder name (default: the file's stem)
+    envs: [MiniGrid-DoorKey-8x8-v0]
+    variants: [hhp, dqn, ppo, ppo_rnd]
+    seeds: [0, 1, 2]
+    steps: 300000                    # one budget, or a mapping env id -> budget
+    eval_episodes: 100               # final evaluation (default 100)
+    eval_freq: 10000                 # periodic evaluations, in env steps (default: steps // 20; 0: none)
+    curve_episodes: 20               # episodes of each periodic evaluation (default 10)
+    hhp_conf: hyperparams/hhp.yml    # optional
+    hhp_args: []                     # optional, more options for sb3_hhp.train
+    baselines_conf: hyperparams/baselines.yml   # optional
+
+Needs the ``plots`` extra (pandas).
+"""
+
+import argparse
+import concurrent.futures
+import contextlib
+import dataclasses
+import difflib
+import json
+import multiprocessing
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from collections.abc import Callable
+from typing import Any, Optional, Union
+
+import yaml
+
+#: the variants a sweep may name, in the order of tables and plots
+VARIANTS = ("hhp", "dqn", "ppo", "ppo_rnd")
+#: the keys of a sweep file, with their defaults (None: required or computed)
+SWEEP_KEYS: dict[str, Any] = {
+    "name": None,
+    "envs": None,
+    "variants": None,
+    "seeds": None,
+    "steps": None,
+    "eval_episodes": 100,
+    "eval_freq": None,
+    "curve_episodes": 10,
+    "hhp_conf": None,
+    "hhp_args": [],
+    "baselines_conf": "hyperparams/baselines.yml",
+}
+#: the columns of results.csv; a row's key is (env, variant, seed, steps); steps is the budget, timesteps the steps
+#: trained (PPO rounds the budget up to whole rollouts of n_steps * n_envs)
+COLUMNS = (
+    "env", "variant", "seed", "steps", "timesteps", "success_det", "success_stoch", "return_det", "return_stoch",
+    "labels_used", "eval_episodes", "train_seconds", "wall_seconds", "curve", "summary",
+)
+KEY_COLUMNS = ("env", "variant", "seed", "steps")
+#: keys of a baseline entry read by the runner; the rest go to the algorithm's constructor
+BASELINE_RUNNER_KEYS = ("n_envs", "policy", "vec_rnd")
+#: periodic evaluations per run when the sweep does not set eval_freq
+DEFAULT_CURVE_POINTS = 20
+
+
+class SweepError(ValueError):
+    """A sweep file that cannot be run: reported in one line, before anything is trained."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    """One training run of the sweep.
+
+    :param env: gymnasium env id
+    :param variant: one of :data:`VARIANTS`
+    :param seed: training seed (>= 0); evaluation seeds start at ``seed + 10000``
+    :param steps: training budget, primitive env steps (>= 1)
+    """
+
+    env: str
+    variant: str
+    seed: int
+    steps: int
+
+    @property
+    def name(self) -> str:
+        """File-name-safe id of the run, e.g. ``MiniGrid-DoorKey-8x8-v0__ppo__s0``."""
+        return f"{self.env.replace('/', '-')}__{self.variant}__s{self.seed}"
+
+    @property
+    def key(self) -> tuple[str, str, int, int]:
+        return (self.env, self.variant, self.seed, self.steps)
+
+
+@dataclasses.dataclass(frozen=True)
+class Sweep:
+    """A parsed and checked sweep file (see the module's docstring for its keys)."""
+
+    name: str
+    experiments: tuple[Experiment, ...]
+    eval_episodes: int
+    eval_freq: dict[str, int]
+    curve_episodes: int
+    hhp_conf: Optional[str]
+    hhp_args: tuple[str, ...]
+    baselines_conf: str
+
+
+# ---------------------------------------------------------------------- sweep file
+
+
+def _positive_int(value: Any, what: str, minimum: int = 1) -> int:
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise SweepError(f"{what} must be an integer >= {minimum} (e.g. 300000 or 300_000), got {value!r}")
+    return value
+
+
+def _string_list(value: Any, what: str) -> list[str]:
+    values = [value] if isinstance(value, str) else value
+    if not isinstance(values, list) or not values or not all(isinstance(v, str) for v in values):
+        raise SweepError(f"{what} must be a name or a non-empty list of names, got {value!r}")
+    return values
+
+
+def _check_file(path: Optional[str], what: str) -> None:
+    if path is not None and not os.path.isfile(path):
+        raise SweepError(f"{what}: no such file {path!r} (paths are relative to the working directory)")
+
+
+def load_sweep(path: Union[str, Path], check_envs: bool = True) -> Sweep:
+    """Read and check a sweep file.
+
+    :param path: the YAML file
+    :param check_envs: check every env id against the gymnasium registry and every baseline against
+        ``baselines_conf`` (imports the env packages, about a second)
+    :return: the sweep, its experiments in the order env, variant, seed
+    """
+    path = Path(path)
+    try:
+        table = yaml.safe_load(path.read_text())
+    except OSError as error:
+        raise SweepError(f"Cannot read the sweep file {path}: {error}") from error
+    except yaml.YAMLError as error:
+        raise SweepError(f"{path} is not valid YAML: {error}".replace("\n", " ")) from error
+    where = str(path)
+    if not isinstance(table, dict):
+        raise SweepError(f"{where} must map keys ({', '.join(SWEEP_KEYS)}) to values, got {type(table).__name__}")
+    for key in table:
+        if key not in SWEEP_KEYS:
+            close = difflib.get_close_matches(str(key), list(SWEEP_KEYS), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise SweepError(f"{where}: unknown key {key!r}{hint}; valid keys: {', '.join(SWEEP_KEYS)}")
+    settings = {**SWEEP_KEYS, **table}
+    for key in ("envs", "variants", "seeds", "steps"):
+        if settings[key] is None:
+            raise SweepError(f"{where}: {key!r} is required")
+    envs = _string_list(settings["envs"], f"{where}: envs")
+    variants = _string_list(settings["variants"], f"{where}: variants")
+    for variant in variants:
+        if variant not in VARIANTS:
+            close = difflib.get_close_matches(variant, VARIANTS, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise SweepError(f"{where}: unknown variant {variant!r}{hint}; use some of {', '.join(VARIANTS)}")
+    seeds_value = settings["seeds"] if isinstance(settings["seeds"], list) else [settings["seeds"]]
+    seeds = [_positive_int(seed, f"{where}: seeds", minimum=0) for seed in seeds_value]
+    if not seeds:
+        raise SweepError(f"{where}: seeds must list at least one seed")
+    steps_value = settings["steps"]
+    if isinstance(steps_value, dict):
+        missing = [env for env in envs if env not in steps_value]
+        if missing:
+            raise SweepError(f"{where}: steps has no budget for {', '.join(missing)}")
+        steps = {env: _positive_int(steps_value[env], f"{where}: steps[{env}]") for env in envs}
+    else:
+        steps = {env: _positive_int(steps_value, f"{where}: steps") for env in envs}
+    if settings["eval_freq"] is None:
+        eval_freq = {env: max(budget // DEFAULT_CURVE_POINTS, 1) for env, budget in steps.items()}
+    else:
+        eval_freq = {env: _positive_int(settings["eval_freq"], f"{where}: eval_freq", minimum=0) for env in envs}
+    hhp_args = settings["hhp_args"] or []
+    if not isinstance(hhp_args, list) or not all(isinstance(arg, (str, int, float)) for arg in hhp_args):
+        raise SweepError(f"{where}: hhp_args must be a list of command-line words, got {hhp_args!r}")
+    _check_file(settings["hhp_conf"], f"{where}: hhp_conf")
+    _check_file(settings["baselines_conf"], f"{where}: baselines_conf")
+    if check_envs:
+        for env in envs:
+            check_env(env, where)
+        for variant in variants:
+            if variant != "hhp":
+                for env in envs:
+                    baseline_settings(settings["baselines_conf"], variant, env)
+    sweep = Sweep(
+        name=str(settings["name"] or path.stem),
+        experiments=tuple(
+            Experiment(env, variant, seed, steps[env]) for env in envs for variant in variants for seed in seeds
+        ),
+        eval_episodes=_positive_int(settings["eval_episodes"], f"{where}: eval_episodes", minimum=0),
+        eval_freq=eval_freq,
+        curve_episodes=_positive_int(settings["curve_episodes"], f"{where}: curve_episodes"),
+        hhp_conf=settings["hhp_conf"],
+        hhp_args=tuple(str(arg) for arg in hhp_args),
+        baselines_conf=str(settings["baselines_conf"]),
+    )
+    return sweep
+
+
+def check_env(env_id: str, where: str) -> None:
+    """Refuse an env id that is not registered, suggesting the closest one (:func:`sb3_hhp.train.check_env_id`)."""
+    from sb3_hhp.train import ConfigError, check_env_id
+
+    try:
+        check_env_id(env_id)
+    except ConfigError as error:
+        raise SweepError(f"{where}: {error}") from error
+
+
+def baseline_settings(config: str, variant: str, env_id: str) -> dict[str, Any]:
+    """The hyperparameters of a flat baseline: ``config[variant]``'s entry for ``env_id``, its domain or ``default``.
+
+    :param config: the baselines' YAML file (``hyperparams/baselines.yml``)
+    :param variant: ``dqn``, ``ppo`` or ``ppo_rnd``
+    :param env_id: a registered env id
+    """
+    from sb3_hhp.train import ConfigError, select_entry
+
+    try:
+        with open(config) as file:
+            table = yaml.safe_load(file)
+    except (OSError, yaml.YAMLError) as error:
+        raise SweepError(f"Cannot read the baselines' hyperparameters {config}: {error}") from error
+    if not isinstance(table, dict) or variant not in table:
+        raise SweepError(f"{config} has no entry {variant!r}: add one (keys: variants, then env ids or domains)")
+    try:
+        entry = select_entry(table[variant], env_id, f"{config} [{variant}]")
+    except ConfigError as error:
+        raise SweepError(str(error)) from error
+    settings = dict(table[variant][entry] or {})
+    if "vec_rnd" in settings and variant != "ppo_rnd":
+        raise SweepError(f"{config} [{variant}][{entry}]: vec_rnd belongs to ppo_rnd only")
+    return settings
+
+
+# ---------------------------------------------------------------------- one experiment (in a worker process)
+
+
+def _curve_from_evaluations(npz_path: Path, csv_path: Path) -> Optional[str]:
+    """Write the periodic evaluations of an EvalCallback (``evaluations.npz``) as a curve CSV.
+
+    Success at an evaluation is the fraction of its episodes with ``is_success`` when the env reports it,
+    else with a positive return (MiniGrid pays only on reaching the goal), as :func:`sb3_hhp.train.evaluate`.
+    """
+    import numpy as np
+    import pandas as pd
+
+    if not npz_path.is_file():
+        return None
+    data = np.load(npz_path)
+    returns = np.asarray(data["results"], dtype=float)
+    if len(returns) == 0:
+        return None
+    successes = data["successes"] if "successes" in data.files and np.size(data["successes"]) else returns > 0
+    curve = pd.DataFrame(
+        {
+            "steps": np.asarray(data["timesteps"], dtype=int),
+            "success": np.asarray(successes, dtype=float).mean(axis=1),
+            "mean_return": returns.mean(axis=1),
+        }
+    )
+    csv_path.parent.mkdir(parents=True, exist_ok=True)
+    curve.to_csv(csv_path, index=False)
+    return str(csv_path)
+
+
+def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> dict[str, Any]:
+    summary_path = out / "runs" / f"{experiment.name}.json"
+    log_folder = out / "logs" / experiment.name
+    command = [
+        sys.executable, "-m", "sb3_hhp.train", "--env", experiment.env, "--oracle", "scripted",
+        "-n", str(experiment.steps), "--seed", str(experiment.seed), "--eval-both",
+        "--eval-episodes", str(sweep.eval_episodes), "--summary-json", str(summary_path),
+        "-f", str(log_folder), "--num-threads", "1",
+        "--eval-freq", str(sweep.eval_freq[experiment.env] or -1),
+        "--periodic-eval-episodes", str(sweep.curve_episodes),
+    ]
+    if sweep.hhp_conf:
+        command += ["--conf-file", sweep.hhp_conf]
+    command += list(sweep.hhp_args)
+    log_file.write("$ " + " ".join(command) + "\n")
+    log_file.flush()
+    completed = subprocess.run(
+        command, stdout=log_file, stderr=subprocess.STDOUT, env={**os.environ, "OMP_NUM_THREADS": "1"}
+    )
+    if completed.returncode != 0:
+        raise RuntimeError(f"sb3_hhp.train exited with status {completed.returncode}")
+    summary = json.loads(summary_path.read_text())
+    return {
+        "summary": summary,
+        "summary_path": summary_path,
+        "evaluations": Path(summary["log_path"]) / "evaluations.npz",
+        "labels_used": summary["queries_used"],
+    }
+
+
+def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, Any]:
+    import torch as th
+    from stable_baselines3 import DQN, PPO
+    from stable_baselines3.common.callbacks import EvalCallback
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from sb3_hhp.curiosity import VecRNDReward
+    from sb3_hhp.goals import wrap_env
+    from sb3_hhp.train import domain_of, eval_seeds, evaluate
+
+    th.set_num_threads(1)
+    settings = baseline_settings(sweep.baselines_conf, experiment.variant, experiment.env)
+    n_envs = int(settings.pop("n_envs", 1))
+    policy = settings.pop("policy", "MlpPolicy")
+    vec_rnd = settings.pop("vec_rnd", None)
+    env = make_vec_env(experiment.env, n_envs=n_envs, seed=experiment.seed, wrapper_class=wrap_env)
+    if experiment.variant == "ppo_rnd":
+        vec_rnd = dict(vec_rnd or {})
+        vec_rnd["rnd_kwargs"] = {"seed": experiment.seed, **(vec_rnd.get("rnd_kwargs") or {})}
+        env = VecRNDReward(env, **vec_rnd)
+    algo = DQN if experiment.variant == "dqn" else PPO
+    model = algo(policy, env, seed=experiment.seed, device="cpu", verbose=0, **settings)
+    log_folder = out / "logs" / experiment.name
+    callback = None
+    eval_freq = sweep.eval_freq[experiment.env]
+    if eval_freq > 0:
+        # periodic evaluations on their own env, seeded apart from training; stochastic on MiniGrid (as RL Zoo)
+        eval_env = make_vec_env(
+            experiment.env, n_envs=1, seed=eval_seeds(experiment.seed, 1)[0], wrapper_class=wrap_env
+        )
+        callback = EvalCallback(
+            eval_env, n_eval_episodes=sweep.curve_episodes, eval_freq=max(eval_freq // n_envs, 1),
+            log_path=str(log_folder), deterministic=domain_of(experiment.env) != "minigrid", verbose=0,
+        )
+    start = time.perf_counter()
+    model.learn(experiment.steps, callback=callback)
+    train_seconds = time.perf_counter() - start
+    model.save(log_folder / "model.zip")
+    seeds = eval_seeds(experiment.seed, sweep.eval_episodes)
+
+    def make_envs(n: int) -> Any:
+        return make_vec_env(experiment.env, n_envs=n, wrapper_class=wrap_env)
+
+    summary: dict[str, Any] = {
+        "env": experiment.env, "variant": experiment.variant, "seed": experiment.seed,
+        "total_timesteps": int(model.num_timesteps), "train_seconds": round(train_seconds, 3),
+        "fps": round(model.num_timesteps / train_seconds, 1) if train_seconds > 0 else None,
+        "eval_episodes": len(seeds), "eval_seeds": seeds, "hyperparams": {"n_envs": n_envs, "policy": policy,
+        **settings, **({"vec_rnd": vec_rnd} if vec_rnd else {})}, "log_path": str(log_folder),
+    }
+    for name, deterministic in (("deterministic", True), ("stochastic", False)):
+        results = evaluate(model, make_envs, seeds, deterministic=deterministic)
+        summary[f"success_rate_{name}"] = sum(results["successes"]) / len(seeds) if seeds else None
+        summary[f"mean_return_{name}"] = sum(results["returns"]) / len(seeds) if seeds else None
+    env.close()
+    summary_path = out / "runs" / f"{experiment.name}.json"
+    summary_path.parent.mkdir(parents=True, exist_ok=True)
+    summary_path.write_text(json.dumps(summary, indent=2) + "\n")
+    return {
+        "summary": summary,
+        "summary_path": summary_path,
+        "evaluations": log_folder / "evaluations.npz",
+        "labels_used": None,
+    }
+
+
+def run_experiment(experiment: Experiment, sweep: Sweep, out: Union[str, Path]) -> dict[str, Any]:
+    """Train and evaluate one experiment; its output goes to ``logs/<run>.log``.
+
+    :param experiment: what to run
+    :param sweep: the sweep's settings
+    :param out: the sweep's output folder
+    :return: its row of ``results.csv`` (paths relative to ``out``)
+    """
+    out = Path(out)
+    log_folder = out / "logs" / experiment.name
+    shutil.rmtree(log_folder, ignore_errors=True)  # a failed earlier attempt's files
+    log_folder.mkdir(parents=True)
+    start = time.perf_counter()
+    with open(out / "logs" / f"{experiment.name}.log", "w") as log_file:
+        if experiment.variant == "hhp":
+            result = _run_hhp(experiment, sweep, out, log_file)
+        else:
+            with contextlib.redirect_stdout(log_file), contextlib.redirect_stderr(log_file):
+                result = _run_baseline(experiment, sweep, out)
+    wall_seconds = time.perf_counter() - start
+    summary = result["summary"]
+    curve = _curve_from_evaluations(result["evaluations"], out / "curves" / f"{experiment.name}.csv")
+    return {
+        "env": experiment.env,
+        "variant": experiment.variant,
+        "seed": experiment.seed,
+        "steps": experiment.steps,
+        "timesteps": summary.get("total_timesteps"),
+        "success_det": summary.get("success_rate_deterministic"),
+        "success_stoch": summary.get("success_rate_stochastic"),
+        "return_det": summary.get("mean_return_deterministic"),
+        "return_stoch": summary.get("mean_return_stochastic"),
+        "labels_used": result["labels_used"],
+        "eval_episodes": summary.get("eval_episodes"),
+        "train_seconds": summary.get("train_seconds"),
+        "wall_seconds": round(wall_seconds, 1),
+        "curve": os.path.relpath(curve, out) if curve else None,
+        "summary": os.path.relpath(result["summary_path"], out),
+    }
+
+
+# ---------------------------------------------------------------------- the sweep
+
+
+def read_results(csv_path: Union[str, Path]) -> Any:
+    """``results.csv`` as a DataFrame (an empty one with :data:`COLUMNS` when the file does not exist)."""
+    import pandas as pd
+
+    csv_path = Path(csv_path)
+    if not csv_path.is_file():
+        return pd.DataFrame(columns=list(COLUMNS))
+    results = pd.read_csv(csv_path)
+    missing = [column for column in KEY_COLUMNS if column not in results.columns]
+    if missing:
+        raise SweepError(f"{csv_path} lacks the columns {', '.join(missing)}: not a results file of this runner")
+    return results
+
+
+def write_results(results: Any, csv_path: Union[str, Path]) -> None:
+    """Write ``results`` sorted by env, variant (in :data:`VARIANTS` order) and seed, atomically."""
+    csv_path = Path(csv_path)
+    order = {variant: index for index, variant in enumerate(VARIANTS)}
+    results = results.sort_values(
+        ["env", "variant", "seed"], key=lambda column: column.map(order) if column.name == "variant" else column
+    )
+    temporary = csv_path.with_suffix(".csv.tmp")
+    results.to_csv(temporary, index=False)
+    os.replace(temporary, csv_path)
+
+
+def pending_experiments(sweep: Sweep, results: Any) -> list[Experiment]:
+    """The experiments of ``sweep`` with no row in ``results`` yet (same env, variant, seed and steps)."""
+    done = {
+        (str(row.env), str(row.variant), int(row.seed), int(row.steps))
+        for row in results[list(KEY_COLUMNS)].itertuples(index=False)
+    }
+    return [experiment for experiment in sweep.experiments if experiment.key not in done]
+
+
+def run_sweep(
+    sweep: Sweep,
+    out: Union[str, Path],
+    jobs: int = 1,
+    runner: Callable[[Experiment, Sweep, Path], dict[str, Any]] = run_experiment,
+) -> tuple[Path, list[str]]:
+    """Run the experiments of ``sweep`` that have no row yet, ``jobs`` at a time, each in a fresh process.
+
+    :param sweep: the sweep
+    :param out: output folder (created)
+    :param jobs: worker processes (>= 1)
+    :param runner: runs one experiment and returns its row (:func:`run_experiment`); a module-level function,
+        as it is sent to the worker processes
+    :return: the CSV's path and one message per failed experiment
+    """
+    import pandas as pd
+    from tqdm import tqdm
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path = out / "results.csv"
+    results = read_results(csv_path)
+    todo = pending_experiments(sweep, results)
+    skipped = len(sweep.experiments) - len(todo)
+    if skipped:
+        print(f"{skipped} of {len(sweep.experiments)} experiments already in {csv_path}: skipped")
+    failures: list[str] = []
+    if not todo:
+        return csv_path, failures
+    context = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context, max_tasks_per_child=1) as pool:
+        futures = {pool.submit(runner, experiment, sweep, out): experiment for experiment in todo}
+        progress = tqdm(concurrent.futures.as_completed(futures), total=len(futures), desc=sweep.name, unit="run")
+        for future in progress:
+            experiment = futures[future]
+            try:
+                row = future.result()
+            except Exception as error:  # one failed run must not stop the sweep; its log says why
+                log = out / "logs" / f"{experiment.name}.log"
+                failures.append(f"{experiment.name}: {type(error).__name__}: {error} (log: {log})")
+                progress.write(f"failed: {failures[-1]}")
+                continue
+            results = pd.concat([results.dropna(axis=1, how="all"), pd.DataFrame([row])], ignore_index=True)
+            results = results.reindex(columns=list(COLUMNS))
+            write_results(results, csv_path)
+            det, stoch = (row.get(key) for key in ("success_det", "success_stoch"))
+            progress.write(f"{experiment.name}: success det {det} stoch {stoch}, {row.get('wall_seconds')} s")
+    return csv_path, failures
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.run",
+        description="Run a sweep of experiments (env x variant x seed) in parallel; one CSV of results.",
+    )
+    parser.add_argument("config", help="the sweep's YAML file (e.g. benchmarks/experiments/doorkey8x8.yml)")
+    parser.add_argument("--jobs", type=int, default=1, help="experiments at once, one process each (default 1)")
+    parser.add_argument("--out", default=None, help="output folder (default benchmarks/results/<sweep name>)")
+    args = parser.parse_args(argv)
+    try:
+        if args.jobs < 1:
+            raise SweepError(f"--jobs must be >= 1, got {args.jobs}")
+        sweep = load_sweep(args.config)
+        out = Path(args.out) if args.out else Path("benchmarks") / "results" / sweep.name
+        start = time.perf_counter()
+        csv_path, failures = run_sweep(sweep, out, args.jobs)
+    except SweepError as error:
+        print(f"python -m benchmarks.run: error: {error}", file=sys.stderr)
+        return 2
+    print(f"Results: {csv_path} ({time.perf_counter() - start:.0f} s); report: python benchmarks/report.py {csv_path}")
+    if failures:
+        print(f"{len(failures)} experiments failed (rerun the same command to retry them):", file=sys.stderr)
+        for failure in failures:
+            print(f"  {failure}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

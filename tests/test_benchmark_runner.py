@@ -1,0 +1,195 @@
+"""Tests of the benchmark runner (python -m benchmarks.run) and its report (benchmarks/report.py), without training."""
+
+import textwrap
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from benchmarks import report
+from benchmarks.run import (
+    COLUMNS,
+    Experiment,
+    Sweep,
+    SweepError,
+    _curve_from_evaluations,
+    load_sweep,
+    main,
+    pending_experiments,
+    read_results,
+    run_sweep,
+)
+
+EXPERIMENTS = Path(__file__).resolve().parent.parent / "benchmarks" / "experiments"
+
+
+def write(tmp_path: Path, text: str, name: str = "sweep.yml") -> Path:
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def fake_row(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, Any]:
+    """Stands in for run_experiment: a row that records the seed as the success rate."""
+    return {
+        "env": experiment.env, "variant": experiment.variant, "seed": experiment.seed, "steps": experiment.steps,
+        "success_det": experiment.seed / 10, "success_stoch": 0.5, "wall_seconds": 1.0,
+    }
+
+
+def failing_row(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, Any]:
+    raise RuntimeError("sb3_hhp.train exited with status 1")
+
+
+def test_the_shipped_sweeps_parse():
+    doorkey = load_sweep(EXPERIMENTS / "doorkey8x8.yml")
+    assert doorkey.name == "doorkey8x8"
+    assert {(e.variant, e.seed) for e in doorkey.experiments} == {
+        (variant, seed) for variant in ("hhp", "dqn", "ppo", "ppo_rnd") for seed in (0, 1, 2)
+    }
+    assert {e.steps for e in doorkey.experiments} == {300_000}
+    assert doorkey.eval_episodes == 100
+    smoke = load_sweep(EXPERIMENTS / "smoke.yml")
+    assert [e.variant for e in smoke.experiments] == ["hhp", "dqn", "ppo", "ppo_rnd"]
+    assert {e.steps for e in smoke.experiments} == {2000}
+
+
+def test_grid_defaults_and_per_env_budgets(tmp_path):
+    sweep = load_sweep(write(tmp_path, """
+        envs: [MiniGrid-Empty-5x5-v0, MiniGrid-DoorKey-5x5-v0]
+        variants: [ppo, hhp]
+        seeds: [0, 1]
+        steps: {MiniGrid-Empty-5x5-v0: 2000, MiniGrid-DoorKey-5x5-v0: !!float 4e3}
+    """), check_envs=False)
+    assert sweep.name == "sweep"
+    assert len(sweep.experiments) == 8
+    assert sweep.experiments[0] == Experiment("MiniGrid-Empty-5x5-v0", "ppo", 0, 2000)
+    assert sweep.experiments[-1] == Experiment("MiniGrid-DoorKey-5x5-v0", "hhp", 1, 4000)
+    assert sweep.eval_freq == {"MiniGrid-Empty-5x5-v0": 100, "MiniGrid-DoorKey-5x5-v0": 200}
+    assert sweep.baselines_conf == "hyperparams/baselines.yml"
+
+
+GRID = "envs: [MiniGrid-Empty-5x5-v0]\nvariants: [ppo]\nseeds: [0]\n"
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("envs: [MiniGrid-Empty-5x5-v0\nvariants: [ppo]", "is not valid YAML"),
+        ("- a\n- b", "must map keys"),
+        (GRID.replace("variants", "variant") + "steps: 10", "unknown key 'variant' \\(did you mean 'variants'\\?\\)"),
+        (GRID.replace("[ppo]", "[ppo_rdn]") + "steps: 10", "unknown variant 'ppo_rdn' \\(did you mean 'ppo_rnd'\\?\\)"),
+        (GRID, "'steps' is required"),
+        (GRID + "steps: 3e5", "steps must be an integer >= 1 .*'3e5'"),
+        (GRID.replace("[0]", "[-1]") + "steps: 10", "seeds must be an integer >= 0"),
+        (GRID + "steps: 10\nhhp_conf: nowhere.yml", "no such file 'nowhere.yml'"),
+        (
+            GRID.replace("v0", "v1") + "steps: 10",
+            "Unknown env id 'MiniGrid-Empty-5x5-v1' \\(did you mean 'MiniGrid-Empty-5x5-v0'",
+        ),
+        (GRID.replace("MiniGrid-Empty-5x5-v0", "CartPole-v1") + "steps: 10", "No hyperparameters for CartPole-v1"),
+    ],
+)
+def test_sweep_errors_say_what_to_fix(tmp_path, text, message):
+    with pytest.raises(SweepError, match=message):
+        load_sweep(write(tmp_path, text))
+
+
+def test_command_line_reports_errors_in_one_line(tmp_path, capsys):
+    assert main([str(write(tmp_path, "envs: [x]\nvariants: [sac]\nseeds: [0]\nsteps: 10"))]) == 2
+    assert "error:" in capsys.readouterr().err
+    assert main([str(tmp_path / "missing.yml")]) == 2
+
+
+def test_sweep_is_resumable_and_writes_one_tidy_csv(tmp_path):
+    sweep = load_sweep(write(tmp_path, """
+        name: tiny
+        envs: [MiniGrid-Empty-5x5-v0]
+        variants: [ppo_rnd, hhp]
+        seeds: [0, 1]
+        steps: 100
+    """), check_envs=False)
+    out = tmp_path / "out"
+    out.mkdir()
+    done = fake_row(Experiment("MiniGrid-Empty-5x5-v0", "hhp", 1, 100), sweep, out)
+    pd.DataFrame([done]).reindex(columns=list(COLUMNS)).to_csv(out / "results.csv", index=False)
+    assert len(pending_experiments(sweep, read_results(out / "results.csv"))) == 3
+    csv_path, failures = run_sweep(sweep, out, jobs=2, runner=fake_row)
+    assert failures == []
+    results = pd.read_csv(csv_path)
+    assert list(results.columns) == list(COLUMNS)
+    # sorted by env, variant (hhp before the baselines) and seed, one row each
+    assert list(zip(results["variant"], results["seed"])) == [("hhp", 0), ("hhp", 1), ("ppo_rnd", 0), ("ppo_rnd", 1)]
+    assert results["success_det"].tolist() == [0.0, 0.1, 0.0, 0.1]
+    assert pending_experiments(sweep, results) == []
+    # a finished sweep runs nothing: a runner that fails would be noticed
+    assert run_sweep(sweep, out, jobs=1, runner=failing_row)[1] == []
+    # a bigger budget is a new experiment; a failed one leaves no row, so the next run retries it
+    bigger = load_sweep(write(tmp_path, GRID.replace("ppo", "hhp") + "steps: 200"), check_envs=False)
+    _, failures = run_sweep(bigger, out, jobs=1, runner=failing_row)
+    assert len(failures) == 1 and "exited with status 1" in failures[0]
+    assert len(pd.read_csv(csv_path)) == 4
+
+
+def test_curve_from_periodic_evaluations(tmp_path):
+    npz = tmp_path / "evaluations.npz"
+    np.savez(npz, timesteps=np.array([100, 200]), results=np.array([[0.0, 0.5], [0.9, 0.8]]), ep_lengths=np.ones((2, 2)))
+    path = _curve_from_evaluations(npz, tmp_path / "curves" / "run.csv")
+    curve = pd.read_csv(path)
+    assert curve["steps"].tolist() == [100, 200]
+    assert curve["success"].tolist() == [0.5, 1.0]  # a positive return is a success when is_success is not reported
+    np.testing.assert_allclose(curve["mean_return"], [0.25, 0.85])
+    assert _curve_from_evaluations(tmp_path / "absent.npz", tmp_path / "x.csv") is None
+
+
+def synthetic_results(folder: Path) -> Path:
+    rows = []
+    for variant, successes, labels in (("ppo", (0.2, 0.4), (None, None)), ("hhp", (0.9, 1.0), (40, 60))):
+        for seed, (success, used) in enumerate(zip(successes, labels)):
+            curve = f"curves/{variant}_s{seed}.csv"
+            (folder / "curves").mkdir(exist_ok=True)
+            steps = np.array([0, 500, 1000]) + 10 * seed  # seeds evaluated at slightly different steps
+            pd.DataFrame({"steps": steps, "success": [0.0, success / 2, success], "mean_return": 0.0}).to_csv(
+                folder / curve, index=False
+            )
+            rows.append({
+                "env": "MiniGrid-DoorKey-8x8-v0", "variant": variant, "seed": seed, "steps": 1000,
+                "success_det": success, "success_stoch": success / 2, "labels_used": used, "eval_episodes": 100,
+                "wall_seconds": 1200.0 + 600 * seed, "curve": curve,
+            })
+    path = folder / "results.csv"
+    pd.DataFrame(rows).to_csv(path, index=False)
+    return path
+
+
+def test_report_table_and_plots(tmp_path):
+    csv_path = synthetic_results(tmp_path)
+    table, markdown, plots = report.report(csv_path)
+    lines = table.splitlines()
+    assert "wall time (min)" in lines[0]
+    assert lines[2] == "| MiniGrid-DoorKey-8x8-v0 | HhP | 2 | 1,000 | 0.95 ± 0.07 | 0.47 ± 0.04 | 50 ± 14 | 25.0 ± 7.1 |"
+    assert lines[3] == "| MiniGrid-DoorKey-8x8-v0 | PPO | 2 | 1,000 | 0.30 ± 0.14 | 0.15 ± 0.07 | – | 25.0 ± 7.1 |"
+    assert markdown.read_text().count("|") > 20
+    assert [plot.name for plot in plots] == ["curves_MiniGrid-DoorKey-8x8-v0.png"]
+    assert plots[0].stat().st_size > 1000
+    assert plots[0].name in markdown.read_text()
+
+
+def test_report_mean_curve_over_seeds():
+    a = pd.DataFrame({"steps": [0, 100], "success": [0.0, 1.0]})
+    b = pd.DataFrame({"steps": [0, 100], "success": [0.0, 0.5]})
+    curve = report.mean_curve([a, b])
+    assert curve["steps"].iloc[0] == 0 and curve["steps"].iloc[-1] == 100
+    assert curve["mean"].iloc[-1] == pytest.approx(0.75)
+    assert curve["std"].iloc[-1] == pytest.approx(np.std([1.0, 0.5], ddof=1))
+    assert report.mean_curve([]) is None
+
+
+def test_report_command_line(tmp_path, capsys):
+    synthetic_results(tmp_path)
+    assert report.main([str(tmp_path)]) == 0
+    assert "| HhP |" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="No results file"):
+        report.main([str(tmp_path / "nothing.csv")])
