@@ -8,7 +8,7 @@ desired_goal]`` that every network of HhP reads.
 A sub-goal is a place for the achieved position. Its key is the ``cell_size`` cube (1 cm by default) that
 holds ``achieved_goal``, so that keys recur and visits can be counted (CSD's "visited several times"). The
 table does not move between episodes, so a place found in one episode is a place to go in the next
-(DESIGN.md gap 6), while the desired goal changes; the meta-controller sees the desired goal in the
+(design decisions: a sub-goal recurs), while the desired goal changes; the meta-controller sees the desired goal in the
 observation and learns which place to go to. ``done(s, g)`` is the paper's (section 5.1): the achieved
 position is within ``distance_threshold`` (0.05 m) of the sub-goal's, measured between cell centres. The
 discovery gate's similarity falls with that distance d: 1 / (1 + (d / distance_threshold)^2), 1 at the same

@@ -1,7 +1,7 @@
 """Image goal space for fixed-layout image envs (Atari rooms, a fixed maze drawn as pixels).
 
-When the layout does not change between episodes, the frame itself can stand for a sub-goal (DESIGN.md
-gap 6). Exact frames rarely recur (a sprite moves a pixel, a timer ticks), so the sub-goal key is a
+When the layout does not change between episodes, the frame itself can stand for a sub-goal (design
+decisions: a sub-goal recurs). Exact frames rarely recur (a sprite moves a pixel, a timer ticks), so the sub-goal key is a
 *cell*: the current frame in grayscale, shrunk by area averaging to ``cell_shape`` and quantised to
 ``levels`` intensities, as Go-Explore's cell representation (Ecoffet et al., 2021). Two states share a
 key when they look alike at that coarse scale, which makes keys recur, visits countable (CSD's "visited

@@ -1,7 +1,7 @@
 """MiniGrid goal space: a sub-goal is a situation that recurs across procedurally generated layouts.
 
 MiniGrid tasks draw a new layout every episode, so an exact match of the full grid never recurs and
-a sub-goal taken from one episode would be unreachable in the next (DESIGN.md gap 6). A sub-goal key
+a sub-goal taken from one episode would be unreachable in the next (design decisions: a sub-goal recurs). A sub-goal key
 is therefore the situation a person would name: *what the agent carries* and *what is in front of
 it, with its state* ("facing the key", "carrying the key, facing the locked door", "the door in
 front is open", "facing the goal"), plus :data:`~sb3_hhp.goals.base.SUCCESS_KEY` for a solved task.

@@ -124,7 +124,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         :data:`~sb3_hhp.oracles.ORACLE_NAMES`
     :param query_budget: total number of questions over training (>= 0)
     :param t_qry: confidence threshold above which a tuple is asked (fixed mode)
-    :param query_mode: "fixed" (t_qry) or "adaptive" (paces the budget over training, DESIGN.md gap 3)
+    :param query_mode: "fixed" (t_qry) or "adaptive" (paces the budget over training, design decisions: adaptive threshold)
     :param query_horizon: primitive steps over which the adaptive mode paces the budget (default: the
         ``total_timesteps`` of each ``learn`` call; set it when training in several ``learn`` calls)
     :param beta: weight of the extrinsic return in eq. 3, in [0, 1]
@@ -134,15 +134,15 @@ class HhP(BetweenEpisodes, DoubleDQN):
     :param discovery: "csd", "random" (ablation) or "none" (only the sub-goals handed in)
     :param subgoals: sub-goals handed in by the user: observations of the env (seed or replace discovery)
     :param goal_space: "auto", a registered name or a :class:`~sb3_hhp.goals.GoalSpace`
-    :param max_subgoal_steps: primitive steps after which a sub-goal gives up (DESIGN.md gap 5)
+    :param max_subgoal_steps: primitive steps after which a sub-goal gives up (design decisions: max_subgoal_steps)
     :param subgoal_capacity: initial size of the meta-controller's head (it doubles when full)
     :param b_similarity: CSD similarity gate in [0, 1]
     :param csd_percentile: CSD's lowest percentile of novelty progress
     :param csd_min_visits: visits a state's sub-goal key needs before it may become a sub-goal
     :param n_masks: MC-dropout masks for the confidence (eq. 4)
     :param dropout: dropout probability p of the predictor
-    :param predictor_head: "linear" or "sigmoid" (DESIGN.md gap 1)
-    :param confidence_spread: "std" or "var" of the MC-dropout predictions (DESIGN.md gap 1)
+    :param predictor_head: "linear" or "sigmoid" (design decisions: the predictor head)
+    :param confidence_spread: "std" or "var" of the MC-dropout predictions (design decisions: the predictor head)
     :param predictor_input: what the preference predictor reads: "observation", "features" (the goal space's
         compact description of a state, :meth:`~sb3_hhp.goals.GoalSpace.features`) or "auto" (features when the
         goal space has them; see the README's Design)
@@ -483,7 +483,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         return self.subgoal_set.goals
 
     def add_subgoal(self, key: Any, obs: np.ndarray, image: Optional[np.ndarray], source: str = "csd") -> int:
-        """Add a sub-goal (and its learner); the meta-controller's head doubles when full (DESIGN.md gap 4)."""
+        """Add a sub-goal (and its learner); the meta-controller's head doubles when full (design decisions: growing head)."""
         goal_id = self.subgoal_set.add(key, obs, image, self.num_timesteps, source)
         self.subpolicies.add(key)
         self._sync_action_space()

@@ -213,7 +213,7 @@ class PreferencePredictor(OwnRandomState):
     :param n_masks: number of dropout masks for the confidence (eq. 4), >= 1 (paper: 500)
     :param head: output activation of the network: "linear", "sigmoid" (the paper's) or "relu"
     :param spread: "var" (eq. 4 as written: variance over masks) or "std" (its square root, the
-        default, so that t_qry 0.26 / 0.42 are reachable; DESIGN.md gap 1)
+        default, so that t_qry 0.26 / 0.42 are reachable; design decisions: the predictor head)
     :param learning_rate: Adam learning rate, > 0 (paper: 1e-3)
     :param batch_size: minibatch size for training, >= 1 (paper: 128)
     :param n_epochs: epochs over the buffer per :meth:`train` call, >= 1 (paper: 4)
@@ -372,7 +372,7 @@ class PreferencePredictor(OwnRandomState):
         p = p_dj.mean(dim=1, keepdim=True)  # predictive posterior mean
         c = ((p_dj - p) ** 2).mean(dim=1)  # eq. 4
         if self.spread == "std":
-            c = c.sqrt()  # DESIGN.md gap 1
+            c = c.sqrt()  # design decisions: the predictor head
         return c.float().cpu().numpy()
 
     # ------------------------------------------------------------------ the buffer R
@@ -388,7 +388,7 @@ class PreferencePredictor(OwnRandomState):
         label = Label.parse(label)
         if label == Label.INCOMPARABLE:
             return False
-        # one-hot targets (v_0, v_1) of eq. 1; "equal" teaches (0.5, 0.5) (DESIGN.md gap 2)
+        # one-hot targets (v_0, v_1) of eq. 1; "equal" teaches (0.5, 0.5) (design decisions: EQUAL)
         target = {Label.FIRST: (1.0, 0.0), Label.SECOND: (0.0, 1.0), Label.EQUAL: (0.5, 0.5)}[label]
         shape = tuple(self.observation_space.shape)
         arrays = {"state": np.asarray(state), "goal1": np.asarray(goal1), "goal2": np.asarray(goal2)}

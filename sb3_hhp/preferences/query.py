@@ -8,7 +8,7 @@ the total number of questions over the whole training run.
 Two modes:
 
 * ``"fixed"``: the paper's rule, a constant threshold ``t_qry`` (0.26 MiniGrid, 0.42 Atari/MuJoCo).
-* ``"adaptive"`` (DESIGN.md gap 3; the paper's future work): the budget is paced over training.
+* ``"adaptive"`` (design decisions: adaptive threshold; the paper's future work): the budget is paced over training.
   At ``num_timesteps`` out of ``total_timesteps`` the allowance is
   ``A = floor(budget * min(1, num_timesteps / total_timesteps))`` and the quota of this call is
   ``k = A - used``. The confidences of askable tuples are pooled in a window of the last
