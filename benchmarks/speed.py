@@ -9,6 +9,12 @@ process; then a profiled continuation of HhP (where the time goes)::
 
     python benchmarks/speed.py ratio --env MiniGrid-DoorKey-8x8-v0 --out benchmarks/results/speed
 
+``late``: a saved run's model (e.g. the benchmark runner's DoorKey-8x8 run at 300,000 steps) trained on for
+``--profile-steps`` more steps, timed then profiled, against flat SB3 DQN timed as in ``ratio`` over the same
+number of steps: the speed late in a run, when sub-goals have accumulated and episodes are short::
+
+    python benchmarks/speed.py late --model RUN/MiniGrid-DoorKey-8x8-v0.zip --n-envs 8
+
 ``subgoals``: HhP with K sub-goals handed in (``discovery="none"``), K = 2 and 32, each in a fresh process: the
 cost of a primitive step (after a warm-up) and the peak resident memory::
 
@@ -71,14 +77,7 @@ def make_envs(env_id: str, n_envs: int, seed: int) -> Any:
 def ratio(args: argparse.Namespace) -> dict[str, Any]:
     entry, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
     kwargs["oracle"] = "scripted"
-    # the flat learner does the sub-goal learners' work per primitive step: their network, train_freq, batch size
-    sub = {**default_subpolicy_kwargs(), **kwargs.get("subpolicy_kwargs", {})}
-    net_arch = (sub.get("policy_kwargs") or {}).get("net_arch", [64, 64])
-    dqn = DQN("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), learning_starts=sub["learning_starts"],
-              batch_size=sub["batch_size"], train_freq=sub["train_freq"], gradient_steps=max(1, args.n_envs // sub["train_freq"]),
-              buffer_size=50_000, policy_kwargs=dict(net_arch=net_arch), seed=args.seed)
-    if args.n_envs > 1:  # SB3's train_freq counts steps of the VecEnv: one update per train_freq primitive steps
-        dqn.train_freq = TrainFreq(1, TrainFrequencyUnit.STEP)
+    dqn, learning = flat_dqn(args, kwargs)
     dqn_fps = timed_window(dqn, args.start, args.stop)
     hhp = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **kwargs)
     hhp_fps = timed_window(hhp, args.start, args.stop)
@@ -86,17 +85,57 @@ def ratio(args: argparse.Namespace) -> dict[str, Any]:
     profiler.enable()
     hhp.learn(args.profile_steps, reset_num_timesteps=False)
     profiler.disable()
-    out = pathlib.Path(args.out)
-    with open(out / f"{args.name or 'ratio'}_profile.txt", "w") as handle:
-        stats = pstats.Stats(profiler, stream=handle)
-        handle.write(f"HhP ({entry} entry) on {args.env}, {args.profile_steps} steps after step {args.stop}, "
-                     f"{len(hhp.subgoals)} sub-goals\n")
-        stats.sort_stats("cumulative").print_stats(45)
-        stats.sort_stats("tottime").print_stats(25)
+    write_profile(profiler, pathlib.Path(args.out) / f"{args.name or 'ratio'}_profile.txt",
+                  f"HhP ({entry} entry) on {args.env}, {args.profile_steps} steps after step {args.stop}, "
+                  f"{len(hhp.subgoals)} sub-goals")
     return dict(env=args.env, entry=entry, hhp_kwargs=json.loads(args.hhp_kwargs), window=[args.start, args.stop],
                 seed=args.seed, n_envs=args.n_envs, dqn_fps=round(dqn_fps, 1),
                 hhp_fps=round(hhp_fps, 1), ratio=round(hhp_fps / dqn_fps, 3), num_subgoals=len(hhp.subgoals),
-                dqn_learning=dict(net_arch=net_arch, train_freq=sub["train_freq"], batch_size=sub["batch_size"]))
+                dqn_learning=learning)
+
+
+def flat_dqn(args: argparse.Namespace, kwargs: dict[str, Any]) -> tuple[DQN, dict[str, Any]]:
+    """Flat SB3 DQN doing the sub-goal learners' work per primitive step (their network, train_freq, batch size)."""
+    sub = {**default_subpolicy_kwargs(), **kwargs.get("subpolicy_kwargs", {})}
+    net_arch = (sub.get("policy_kwargs") or {}).get("net_arch", [64, 64])
+    dqn = DQN("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), learning_starts=sub["learning_starts"],
+              batch_size=sub["batch_size"], train_freq=sub["train_freq"], gradient_steps=max(1, args.n_envs // sub["train_freq"]),
+              buffer_size=50_000, policy_kwargs=dict(net_arch=net_arch), seed=args.seed)
+    if args.n_envs > 1:  # SB3's train_freq counts steps of the VecEnv: one update per train_freq primitive steps
+        dqn.train_freq = TrainFreq(1, TrainFrequencyUnit.STEP)
+    return dqn, dict(net_arch=net_arch, train_freq=sub["train_freq"], batch_size=sub["batch_size"])
+
+
+def write_profile(profiler: cProfile.Profile, path: pathlib.Path, title: str) -> None:
+    with open(path, "w") as handle:
+        stats = pstats.Stats(profiler, stream=handle)
+        handle.write(title + "\n")
+        stats.sort_stats("cumulative").print_stats(45)
+        stats.sort_stats("tottime").print_stats(25)
+
+
+def late(args: argparse.Namespace) -> dict[str, Any]:
+    if not args.model:
+        raise SystemExit("late needs --model: a saved HhP model (e.g. a benchmark run's model zip)")
+    entry, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
+    hhp = HhP.load(args.model, env=make_envs(args.env, args.n_envs, args.seed), device="cpu")
+    hhp.oracle = None  # no more questions: a run's budget is spent by its end
+    start_steps = hhp.num_timesteps
+    begin = time.perf_counter()
+    hhp.learn(args.profile_steps, reset_num_timesteps=False)
+    hhp_fps = (hhp.num_timesteps - start_steps) / (time.perf_counter() - begin)
+    profiler = cProfile.Profile()
+    profiler.enable()
+    hhp.learn(args.profile_steps, reset_num_timesteps=False)
+    profiler.disable()
+    write_profile(profiler, pathlib.Path(args.out) / f"{args.name or 'late'}_profile.txt",
+                  f"HhP ({args.model}) on {args.env}, {args.profile_steps} steps after step {hhp.num_timesteps - args.profile_steps}, "
+                  f"{args.n_envs} envs, {len(hhp.subgoals)} sub-goals")
+    dqn, learning = flat_dqn(args, kwargs)
+    dqn_fps = timed_window(dqn, args.start, args.start + args.profile_steps)
+    return dict(env=args.env, model=args.model, from_step=start_steps, steps=args.profile_steps, n_envs=args.n_envs,
+                hhp_fps=round(hhp_fps, 1), dqn_fps=round(dqn_fps, 1), ratio=round(hhp_fps / dqn_fps, 3),
+                num_subgoals=len(hhp.subgoals), dqn_learning=learning)
 
 
 def distinct_states(env_id: str, n: int, seed: int) -> list[np.ndarray]:
@@ -145,7 +184,7 @@ def subgoals(args: argparse.Namespace) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["ratio", "subgoals", "one"])
+    parser.add_argument("what", choices=["ratio", "late", "subgoals", "one"])
     parser.add_argument("--env", default="MiniGrid-DoorKey-8x8-v0")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--start", type=int, default=20_000, help="primitive steps before the timed window")
@@ -155,6 +194,7 @@ def main() -> None:
     parser.add_argument("--counts", type=int, nargs="+", default=[2, 32], help="sub-goal counts (subgoals)")
     parser.add_argument("--k", type=int, default=2, help=argparse.SUPPRESS)
     parser.add_argument("--hhp-kwargs", default="{}", help="JSON: HhP arguments over the entry's, e.g. '{\"subgoal_learner\": \"heads\"}'")
+    parser.add_argument("--model", default=None, help="late: a saved HhP model to train on")
     parser.add_argument("--name", default=None, help="the result file's name (default: the measurement's)")
     parser.add_argument("--out", default="benchmarks/results/speed")
     args = parser.parse_args()
@@ -164,7 +204,7 @@ def main() -> None:
         return
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()[0]
-    result = ratio(args) if args.what == "ratio" else subgoals(args)
+    result = {"ratio": ratio, "late": late, "subgoals": subgoals}[args.what](args)
     result.update(threads=1, load_average_start=round(load_before, 2), load_average_end=round(os.getloadavg()[0], 2),
                   command=" ".join(sys.argv))
     (pathlib.Path(args.out) / f"{args.name or args.what}.json").write_text(json.dumps(result, indent=2) + "\n")

@@ -362,6 +362,25 @@ def test_heads(head, low, high):
     assert np.all(scores >= low) and np.all(scores <= high)
 
 
+@pytest.mark.parametrize("space, head", [(VECTOR_SPACE, "linear"), (VECTOR_SPACE, "sigmoid"),
+                                         (gym.spaces.Box(0, 255, (84, 84, 4), np.uint8), "linear")])
+def test_score_matrix_is_score_on_every_pair(space, head):
+    """The meta-controller's centred bonus reads every sub-goal of every sampled state through ``score_matrix``,
+    which splits the head's first layer into state and goal halves: it must equal ``score`` pair by pair."""
+    rng = np.random.default_rng(0)
+    predictor = make_predictor(observation_space=space, head=head, mask_batch_size=7)  # chunks of one state
+    for _ in range(20):  # trained weights, not the initial ones
+        s, g1, g2 = random_obs(rng, 3, space)
+        predictor.add(s, g1, g2, rng.choice([Label.FIRST, Label.SECOND]))
+    predictor.train()
+    states, goals = random_obs(rng, 5, space), random_obs(rng, 3, space)
+    matrix = predictor.score_matrix(states, goals)
+    pairs = predictor.score(np.repeat(states, 3, axis=0), np.tile(goals, (5,) + (1,) * len(space.shape)))
+    assert matrix.shape == (5, 3)
+    np.testing.assert_allclose(matrix, pairs.reshape(5, 3), rtol=1e-5, atol=1e-5)
+    assert np.ptp(matrix) > 1e-4  # the scores differ: the comparison is not between constants
+
+
 # ---------------------------------------------------------------- save / load, arguments
 
 

@@ -578,8 +578,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         if not self.center_bonus:
             return self.predictor.score(states, goal_obs[goals])
         n_goals, n_states = len(goal_obs), len(states)
-        scores = self.predictor.score(np.repeat(states, n_goals, axis=0), goal_obs[np.tile(np.arange(n_goals), n_states)])
-        scores = scores.reshape(n_states, n_goals)
+        scores = self.predictor.score_matrix(states, goal_obs)  # (n_states, n_goals)
         if self.center_bonus == "max":
             choosable = np.ones_like(scores, dtype=bool) if mask is None else np.broadcast_to(mask, (n_states, mask.shape[-1]))[:, :n_goals]
             best = np.where(choosable | (np.arange(n_goals) == np.asarray(goals)[:, None]), scores, -np.inf).max(axis=1)

@@ -196,6 +196,20 @@ class PreferenceNetwork(nn.Module):
         features = torch.cat([state_features, goal_features], dim=1)
         return self.output_activation(self.head(features)).squeeze(-1)
 
+    def score_matrix(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
+        """Scores ``p_hat(s_i, g_j)`` of every state with every goal, ``(N, G)``, without dropout (eval mode).
+
+        Each branch runs once per state and once per goal, and the head's first layer, linear in the concatenated
+        features, is split into its state and goal halves (``W [f_s; f_g] = W_s f_s + W_g f_g``): only the rest
+        of the head runs per pair. Equal to :meth:`forward` on every pair."""
+        first = self.head[1]
+        n_features = first.in_features // 2
+        state_part = self.state_branch(self.preprocess(states)) @ first.weight[:, :n_features].T + first.bias
+        goal_part = self.goal_branch(self.preprocess(goals)) @ first.weight[:, n_features:].T
+        hidden = (state_part[:, None, :] + goal_part[None, :, :]).reshape(-1, first.out_features)
+        scores = self.output_activation(self.head[2:](hidden)).squeeze(-1)
+        return scores.reshape(len(state_part), len(goal_part))
+
 
 class PreferencePredictor(OwnRandomState):
     """The preference predictor ``p_hat`` with its preference buffer ``R`` (Algorithm 1, lines 25-27).
@@ -323,6 +337,22 @@ class PreferencePredictor(OwnRandomState):
                 g = goals_t if goals_t.shape[0] == 1 else goals_t[start:end]
                 scores[start:end] = self.network(s, g).expand(end - start)
         return scores.cpu().numpy()
+
+    def score_matrix(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
+        """Scores ``p_hat(s_i, g_j)`` of every state with every goal, shape ``(N, G)``, without dropout: what
+        :meth:`score` gives on every pair, with each state and each goal read once (the meta-controller's bonus
+        is centred over all sub-goals of each sampled state).
+
+        :param states: raw states ``(N, *obs_shape)``
+        :param goals: raw goal observations ``(G, *obs_shape)``
+        """
+        states_t, goals_t = self._to_tensor(states, "states"), self._to_tensor(goals, "goals")
+        self.network.eval()
+        rows = max(1, self.mask_batch_size // max(1, goals_t.shape[0]))
+        with torch.no_grad():
+            scores = [self.network.score_matrix(states_t[start : start + rows], goals_t)
+                      for start in range(0, states_t.shape[0], rows)]
+        return torch.cat(scores).cpu().numpy()
 
     def confidence(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """Predictive spread of the score over ``n_masks`` dropout masks (eq. 4); higher = less sure.
