@@ -183,6 +183,31 @@ def test_updates_follow_the_train_frequency_in_one_call_whatever_the_number_of_s
         th.testing.assert_close(learners.target[:n_goals], learners.params[:n_goals])
 
 
+def test_a_round_updates_at_most_max_updates_subgoals_the_pursued_first_then_the_longest_waiting(monkeypatch) -> None:
+    learners = small_learners(train_shared=True, max_updates=3)
+    for goal in range(7):
+        learners.add(goal)
+    calls = []
+    original = learners.train
+    monkeypatch.setattr(learners, "train", lambda goals: calls.append(goals.tolist()) or original(goals))
+    fill(learners.replay, ["x"] * 3, acting=[0] * 3)
+    for step in range(12):  # an update round every 2 steps: 6 rounds; sub-goal 5 is pursued throughout
+        learners.observe(np.zeros((1, 3), np.float32), np.array([0]), np.zeros((1, 3), np.float32), ["x"],
+                         np.array([False]), np.array([False]), np.array([False]), np.array([5]), np.zeros(1, np.float32))
+    # 5 every round, then the two that waited longest (ties: the lower id), so every sub-goal gets its turn
+    assert calls == [[0, 1, 5], [2, 3, 5], [4, 5, 6], [0, 1, 5], [2, 3, 5], [4, 5, 6]]
+    assert learners.n_updates.tolist() == [2, 2, 2, 2, 2, 6, 2]
+    # more pursued sub-goals than max_updates: the pursued ones that waited longest
+    learners.last_round[:] = [0, 5, 1, 9, 9, 9, 9]
+    assert learners.bounded(np.arange(7), np.array([1, 2, 3, 4])).tolist() == [1, 2, 3]
+    assert learners.bounded(np.array([0, 6]), np.array([1])).tolist() == [0, 6]  # no more due than max_updates
+    restored = small_learners(max_updates=3)
+    restored.load_state_dict(learners.state_dict())
+    assert restored.last_round.tolist() == learners.last_round.tolist() and restored.rounds == learners.rounds
+    with pytest.raises(ValueError, match="max_subgoal_updates"):
+        small_learners(max_updates=0)
+
+
 def test_epsilon_decays_with_a_subgoals_own_steps() -> None:
     learners = small_learners(exploration_steps=10)
     learners.add("A")

@@ -75,6 +75,7 @@ def _continuous_actions(env: Union[GymEnv, str]) -> bool:
 PAPER_KWARGS: dict[str, Any] = dict(
     query_budget=200, center_bonus=False, meta_input="observation", predictor_input="observation",
     subgoal_learner="stacked", train_shared=False, subpolicy_kwargs=PAPER_SUBPOLICY_KWARGS, max_subgoal_steps=50,
+    max_subgoal_updates=None,
 )
 
 
@@ -167,6 +168,10 @@ class HhP(BetweenEpisodes, DoubleDQN):
         one call; measured to learn DoorKey-8x8 faster; cost and memory grow with the number of sub-goals) or "heads"
         (one network, a shared trunk and one head per sub-goal, one relabelled batch for all; the cost of a step
         barely grows with the number of sub-goals); see the README's Design
+    :param max_subgoal_updates: ``subgoal_learner="stacked"``: most sub-goal learners updated in one learning round
+        (the sub-goals the envs pursue now first, then those that waited longest), so that the cost of a step stops
+        growing once more sub-goals have been found; None: every sub-goal at each of its updates (see the README's
+        Design)
     :param center_bonus: centre the preference bonus over the sub-goals of each state: True or "mean" subtracts
         their mean, "max" the best choosable one's score, so that no choice is paid (see the README's Design)
     :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
@@ -221,6 +226,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         share_experience: bool = True,
         train_shared: Optional[bool] = None,
         subgoal_learner: str = "stacked",
+        max_subgoal_updates: Optional[int] = 8,
         center_bonus: Union[bool, str] = "max",
         mask_subgoals: bool = True,
         record_images: Optional[bool] = None,
@@ -308,6 +314,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         self.share_experience = share_experience
         self.train_shared = train_shared
         self.subgoal_learner = subgoal_learner
+        self.max_subgoal_updates = max_subgoal_updates
         self.record_images = record_images
         self.subpolicy_policy = policy if isinstance(policy, str) else "MlpPolicy"
 
@@ -424,7 +431,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 obs_space, self.primitive_action_space, self.goal_space.achieved, policy=self.subpolicy_policy,
                 subpolicy_kwargs=self.subpolicy_kwargs, alpha=alpha, exploration_steps=self.subpolicy_exploration_steps,
                 share_experience=self.share_experience, train_shared=self.train_shared, n_envs=self.n_envs,
-                device=device, seed=self.seed,
+                device=device, seed=self.seed, max_updates=getattr(self, "max_subgoal_updates", None),
             )
         else:
             self.subpolicies = PerGoalLearners(

@@ -96,6 +96,9 @@ class StackedDQN:
     :param n_envs: number of env streams stepped together
     :param device: torch device
     :param seed: seed of the initialisations (sub-goal ``g`` gets ``seed + g``), exploration and draws
+    :param max_updates: most sub-goal learners updated in one learning round: the sub-goals some env pursues now
+        first, then those that waited longest for an update; the others skip that round. Bounds the cost of a step
+        as sub-goals accumulate. None: every sub-goal whose update is due
     """
 
     #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
@@ -115,9 +118,15 @@ class StackedDQN:
         n_envs: int = 1,
         device: th.device | str = "cpu",
         seed: Optional[int] = None,
+        max_updates: Optional[int] = None,
     ) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
+        if max_updates is not None and (isinstance(max_updates, bool) or int(max_updates) != max_updates
+                                        or max_updates < 1):
+            raise ValueError(f"max_subgoal_updates must be an integer >= 1 or None, got {max_updates!r}")
+        self.max_updates = None if max_updates is None else int(max_updates)
+        self.rounds = 0  # learning rounds so far
         if exploration_steps < 1:
             raise ValueError(f"exploration_steps must be >= 1, got {exploration_steps}")
         unknown = set(subpolicy_kwargs or {}) - _USED - _IGNORED
@@ -183,6 +192,7 @@ class StackedDQN:
         self.own_steps = np.zeros(0, dtype=np.int64)  # steps each sub-goal acted
         self.ticks = np.zeros(0, dtype=np.int64)  # learning ticks
         self.n_updates = np.zeros(0, dtype=np.int64)
+        self.last_round = np.zeros(0, dtype=np.int64)  # the learning round of each sub-goal's last update
         self.recent: list[deque] = []
         self.successes: list[int] = []
         self.attempts: list[int] = []
@@ -255,6 +265,7 @@ class StackedDQN:
         self.own_steps = np.append(self.own_steps, 0)
         self.ticks = np.append(self.ticks, 0)
         self.n_updates = np.append(self.n_updates, 0)
+        self.last_round = np.append(self.last_round, self.rounds - 1)  # waiting since before this round
         self.recent.append(deque(maxlen=100))
         self.successes.append(0)
         self.attempts.append(0)
@@ -262,6 +273,7 @@ class StackedDQN:
 
     def _counters(self) -> dict[str, Any]:
         return {"own_steps": self.own_steps.tolist(), "ticks": self.ticks.tolist(), "n_updates": self.n_updates.tolist(),
+                "last_round": self.last_round.tolist(), "rounds": self.rounds,
                 "recent": [list(r) for r in self.recent], "successes": list(self.successes),
                 "attempts": list(self.attempts), "goal_keys": list(self.replay.goal_keys)}
 
@@ -269,6 +281,8 @@ class StackedDQN:
         self.own_steps = np.array(state["own_steps"], dtype=np.int64)
         self.ticks = np.array(state["ticks"], dtype=np.int64)
         self.n_updates = np.array(state["n_updates"], dtype=np.int64)
+        self.rounds = int(state.get("rounds", 0))  # absent from models saved before bounded rounds
+        self.last_round = np.array(state.get("last_round", [0] * len(self.n_updates)), dtype=np.int64)
         self.recent = [deque(r, maxlen=100) for r in state["recent"]]
         self.successes, self.attempts = list(state["successes"]), list(state["attempts"])
 
@@ -352,10 +366,22 @@ class StackedDQN:
             for r in range(rounds):
                 goals = np.flatnonzero((due_updates * self.gradient_steps > r) & (totals > 0))
                 if len(goals):
+                    goals = self.bounded(goals, acting)
                     self.train(goals)
+                    self.last_round[goals] = self.rounds
+                    self.rounds += 1
         if due_targets.any():
             index = th.as_tensor(np.flatnonzero(due_targets), device=self.device)
             self.target[index] = self.params[index]
+
+    def bounded(self, goals: np.ndarray, acting: np.ndarray) -> np.ndarray:
+        """The sub-goals of ``goals`` (due for an update) that this round updates, at most ``max_updates``: those
+        an env pursues now (``acting``) first, then those that waited longest; sorted."""
+        if self.max_updates is None or len(goals) <= self.max_updates:
+            return goals
+        pursued = np.isin(goals, acting)
+        order = np.lexsort((goals, self.last_round[goals], ~pursued))  # pursued first, then the longest waiting
+        return np.sort(goals[order[: self.max_updates]])
 
     def train(self, goals: np.ndarray) -> float:
         """One gradient step for each sub-goal of ``goals``, all in one grouped call: a prioritized batch per
