@@ -231,6 +231,35 @@ def test_max_centred_bonus_subtracts_the_best_choosable_score(trained: HhP, monk
     assert not np.allclose(best, scores.max(axis=1))
 
 
+def test_the_bonus_of_a_sampled_choice_is_cached_until_the_predictor_or_the_subgoals_change(trained: HhP) -> None:
+    """The meta-controller's updates read each stored choice's bonus from a cache: equal to a fresh
+    ``preference_bonus``, and scored again once the predictor has trained or a row holds a new choice."""
+    replay = trained.replay_buffer.sample(16)
+    rows = np.asarray(replay.indices)
+    goals = replay.actions.long().flatten().numpy()
+    states = replay.observations.numpy().astype(np.uint8)
+    calls = []
+    original = trained.preference_bonus
+    trained.preference_bonus = lambda s, g: calls.append(len(s)) or original(s, g)
+    trained._bonus_key = None  # an empty cache
+    try:
+        first = trained._replay_bonus(rows, states, goals)
+        np.testing.assert_allclose(first, original(states, goals), rtol=1e-5, atol=1e-6)
+        assert sum(calls) == len(rows)
+        calls.clear()
+        np.testing.assert_array_equal(trained._replay_bonus(rows, states, goals), first)
+        assert calls == []  # nothing scored again
+        trained.predictor.train()  # new weights: every row is scored again
+        trained._replay_bonus(rows, states, goals)
+        assert sum(calls) == len(rows)
+        calls.clear()
+        trained._bonus_valid[rows[0]] = False  # what _store_choices does to a row it overwrites
+        trained._replay_bonus(rows, states, goals)
+        assert sum(calls) == int((rows == rows[0]).sum())
+    finally:
+        del trained.preference_bonus
+
+
 def test_meta_reward_is_eq3_with_the_predictor_bonus(trained: HhP) -> None:
     """r^e = beta * R_e + (1 - beta) * b / sigma(R_p) (eq. 3) on a sampled batch, with b = p_hat(s, g), centred
     over the sub-goals of the state (b - mean_g' p_hat(s, g')) when ``center_bonus``, or shifted by the best choosable

@@ -571,9 +571,25 @@ class HhP(BetweenEpisodes, DoubleDQN):
             return extrinsic
         goals = replay_data.actions.long().flatten().cpu().numpy()
         states = replay_data.observations.cpu().numpy().astype(self.primitive_observation_space.dtype)
-        bonus = self.preference_bonus(states, goals)
+        bonus = self._replay_bonus(np.asarray(replay_data.indices) // self.replay_buffer.n_envs, states, goals)
         bonus_t = th.as_tensor(bonus, dtype=extrinsic.dtype, device=extrinsic.device).reshape(-1, 1)
         return meta_reward(extrinsic, bonus_t, sigma=self.return_normalizer.sigma, beta=self.beta)
+
+    def _replay_bonus(self, rows: np.ndarray, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
+        """:meth:`preference_bonus` of sampled rows of R_H, scored once per row while the predictor and the sub-goal
+        set (and the centring) stay the same (a row's bonus depends on nothing else): late in a run, when the budget is spent, the
+        meta-controller's updates stop re-scoring the same choices."""
+        key = (self.predictor.version, len(self.subgoals), self.center_bonus, self.mask_subgoals, id(self.replay_buffer),
+               self.replay_buffer.buffer_size)
+        if getattr(self, "_bonus_key", None) != key:
+            self._bonus_key = key
+            self._bonus_cache = np.zeros(self.replay_buffer.buffer_size, dtype=np.float32)
+            self._bonus_valid = np.zeros(self.replay_buffer.buffer_size, dtype=bool)
+        stale = ~self._bonus_valid[rows]
+        if stale.any():
+            self._bonus_cache[rows[stale]] = self.preference_bonus(states[stale], goals[stale])
+            self._bonus_valid[rows[stale]] = True
+        return self._bonus_cache[rows]
 
     def preference_bonus(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """The preference bonus b = p_hat(s, g) (Algorithm 1 line 12), centred over the sub-goals when
@@ -654,6 +670,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
             next_obs = maybe_transpose(option.next_obs[None], self.observation_space)
             done = option.terminated or option.truncated
             info = {"TimeLimit.truncated": option.truncated and not option.terminated}
+            if getattr(self, "_bonus_valid", None) is not None and replay_buffer is self.replay_buffer:
+                self._bonus_valid[replay_buffer.pos] = False  # the row's cached bonus belongs to the choice it held
             replay_buffer.add(obs, next_obs, np.array([[option.goal]]),
                               np.array([option.extrinsic_return], dtype=np.float32), np.array([done]), [info])
             self._on_step()
@@ -836,6 +854,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             "options", "subgoal_set", "_last_trace", "rnd", "predictor", "query_selector", "return_normalizer", "subpolicies", "discovery",
             "store", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
             "last_confidences", "consumed_query_ids", "initial_subgoals", "_asked_signatures", "_mask_cache", "_present_cache",
+            "_bonus_key", "_bonus_cache", "_bonus_valid",
         ]
 
     def components_state(self) -> dict[str, Any]:

@@ -272,6 +272,8 @@ class PreferencePredictor(OwnRandomState):
             _check_int("seed", seed, 0)
 
         self.observation_space = observation_space
+        #: changes whenever the network's weights do (train, load): scores cached under another version are stale
+        self.version = 0
         self.dropout = float(dropout)
         self.n_masks = int(n_masks)
         self.spread = spread
@@ -479,6 +481,7 @@ class PreferencePredictor(OwnRandomState):
         _check_int("n_epochs", n_epochs, 1)
         if self._size == 0:
             return {"loss": math.nan, "accuracy": math.nan}
+        self.version += 1
         total_loss, total_count = 0.0, 0
         self.network.train()
         try:
@@ -541,6 +544,7 @@ class PreferencePredictor(OwnRandomState):
                 "build it with the same observation space and buffer_size"
             )
         self.network.load_state_dict(state["network"])
+        self.version += 1
         self.optimizer.load_state_dict(state["optimizer"])
         self._states[:] = buffer["states"].numpy()
         self._goals1[:] = buffer["goals1"].numpy()
