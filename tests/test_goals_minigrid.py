@@ -71,6 +71,32 @@ def test_wrap_env_and_goal_space_auto() -> None:
     assert wrapped.observation_space.contains(obs)
 
 
+def test_minigrids_own_observation_is_skipped_only_where_nothing_reads_it() -> None:
+    from minigrid.wrappers import ImgObsWrapper
+    from stable_baselines3.common.monitor import Monitor
+
+    fast = MiniGridEgocentricObs(Monitor(gym.make("MiniGrid-DoorKey-8x8-v0")))
+    # a wrapper in between that reads MiniGrid's image keeps MiniGrid's own observation
+    reader = MiniGridEgocentricObs(ImgObsWrapper(gym.make("MiniGrid-DoorKey-8x8-v0")))
+    assert "gen_obs" in vars(fast.unwrapped) and "gen_obs" not in vars(reader.unwrapped)
+    image, _ = reader.env.reset(seed=3)
+    assert image.any()  # ImgObsWrapper still sees the real 7x7 view
+    # the egocentric observation is the same whether MiniGrid built its own or not
+    obs_fast, _ = fast.reset(seed=3)
+    obs_reader, _ = reader.reset(seed=3)
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        np.testing.assert_array_equal(obs_fast, obs_reader)
+        action = int(rng.integers(fast.action_space.n))
+        obs_fast, reward_fast, term_fast, trunc_fast, _ = fast.step(action)
+        obs_reader, reward_reader, term_reader, trunc_reader, _ = reader.step(action)
+        assert (reward_fast, term_fast, trunc_fast) == (reward_reader, term_reader, trunc_reader)
+        if term_fast or trunc_fast:
+            obs_fast, _ = fast.reset(seed=4)
+            obs_reader, _ = reader.reset(seed=4)
+    assert fast.unwrapped.gen_obs()["image"].shape == fast.unwrapped.observation_space["image"].shape
+
+
 @pytest.mark.parametrize("direction", [0, 1, 2, 3])
 def test_egocentric_obs_agent_at_centre_facing_up(doorkey5: MiniGridEgocentricObs, direction: int) -> None:
     base = doorkey5.unwrapped
