@@ -290,3 +290,38 @@ def test_the_heads_update_is_each_subgoals_double_dqn_loss_on_one_relabelled_bat
     for (name, expected), actual in zip(network.named_parameters(), learners.network.parameters()):
         th.testing.assert_close(actual, expected, rtol=1e-5, atol=1e-6, msg=name)
     assert learners.last_loss * 2 == pytest.approx(float(loss.detach()), rel=1e-5)
+
+
+def test_the_written_out_backward_pass_equals_autograd_with_the_lower_bound() -> None:
+    kwargs = dict(subpolicy_kwargs=dict(n_steps=3, replay_buffer_kwargs=dict(off_policy_lower_bound=True),
+                                        policy_kwargs=dict(net_arch=[8, 8])))
+    by_hand, by_autograd = small_learners(**kwargs), small_learners(**kwargs)
+    by_autograd._relu_mlp = False  # the generic path: autograd through the batched forward
+    assert by_hand._relu_mlp
+    rng = np.random.default_rng(0)
+    keys, acting = [str(k) for k in rng.integers(4, size=12)], [int(a) for a in rng.integers(3, size=12)]
+    for learners in (by_hand, by_autograd):
+        for goal in ("0", "1", "2"):
+            learners.add(goal)
+        fill(learners.replay, keys, acting=acting)
+        learners.replay._rng = np.random.default_rng(1)
+    for goals in (np.arange(3), np.array([0, 2]), np.arange(3)):
+        by_hand.train(goals)
+        by_autograd.train(goals)
+        th.testing.assert_close(by_hand.params[:3], by_autograd.params[:3], rtol=1e-5, atol=1e-7)
+        th.testing.assert_close(by_hand.exp_avg_sq[:3], by_autograd.exp_avg_sq[:3], rtol=1e-5, atol=1e-12)
+    assert not th.equal(by_hand.params[0], by_hand.target[0])  # the updates moved the networks
+
+
+@pytest.mark.parametrize("goals", [[2, 0, 2, 1], [1, 1, 2, 2], [0, 0, 0, 0]])  # some learners, all, the first only
+def test_acting_reads_each_envs_own_learner_as_its_sb3_policy_does(goals: list) -> None:
+    learners = small_learners()
+    for goal in ("A", "B", "C"):
+        learners.add(goal)
+    obs = np.random.default_rng(0).uniform(-1, 1, (len(goals), 3)).astype(np.float32)
+    q = learners.q_values(np.array(goals), obs)
+    for i, goal in enumerate(goals):
+        with th.no_grad():
+            expected = learners.policy(goal).q_net(th.as_tensor(obs[i : i + 1]))[0]
+        th.testing.assert_close(q[i], expected)
+    assert learners.act(np.array(goals), obs, deterministic=True).tolist() == q.argmax(dim=1).tolist()

@@ -182,6 +182,9 @@ class StackedDQN:
         self._shapes = [tuple(value.shape) for _, value in named]
         self._offsets = np.concatenate([[0], np.cumsum([value.numel() for _, value in named])]).tolist()
         self._layers = _mlp_layers(self._template)  # a plain MLP: batched matrix products, no vmap
+        # a ReLU MLP (SB3's default): its backward pass is written out, no autograd graph per update
+        self._relu_mlp = self._layers is not None and all(
+            kind == "linear" or isinstance(item, th.nn.ReLU) for kind, item in self._layers)
         # every sub-goal's parameters as one row of a (capacity, P) tensor: the update is one Adam step on one tensor
         self.params = th.zeros((0, self._offsets[-1]), device=self.device)
         self.target = th.zeros_like(self.params)
@@ -214,20 +217,50 @@ class StackedDQN:
         return {name: flat[..., start:stop].view(*lead, *shape)
                 for name, shape, start, stop in zip(self._names, self._shapes, self._offsets[:-1], self._offsets[1:])}
 
+    def _mlp_input(self, obs: th.Tensor) -> th.Tensor:
+        """What a plain MLP reads of ``obs`` ``(T, N, ...)``: SB3's preprocessing, flattened to ``(T, N, D)``."""
+        x = preprocess_obs(obs, self.observation_space, normalize_images=self._normalize_images).float()
+        return x.reshape(*obs.shape[:2], -1)
+
     def _vq(self, flat: th.Tensor, obs: th.Tensor) -> th.Tensor:
         """Q-values ``(T, B, A)`` of the learners whose flat parameters are ``flat`` ``(T, P)`` at ``obs`` ``(T, B, ...)``."""
         if self._layers is None:
             return self._vq_generic(flat, obs)
-        x = preprocess_obs(obs, self.observation_space, normalize_images=self._normalize_images).float()
-        x = x.reshape(*obs.shape[:2], -1)
+        return self._mlp_forward(flat, self._mlp_input(obs))[-1]
+
+    def _mlp_forward(self, flat: th.Tensor, x: th.Tensor) -> list[th.Tensor]:
+        """A plain MLP's forward pass for every learner at once (batched matrix products): the output of every
+        layer, the input first and the Q-values ``(T, N, A)`` last (the backward pass reads them)."""
         params = self._unflatten(flat)
+        outputs = [x]
         for kind, item in self._layers:
             if kind == "linear":
                 weight, bias = params[item + ".weight"], params[item + ".bias"]
                 x = th.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
             else:
                 x = item(x)
-        return x
+            outputs.append(x)
+        return outputs
+
+    def _mlp_backward(self, flat: th.Tensor, outputs: list[th.Tensor], grad_q: th.Tensor) -> th.Tensor:
+        """The gradient ``(T, P)`` of a loss with respect to the flat parameters of a ReLU MLP, from the gradient
+        ``grad_q`` ``(T, B, A)`` with respect to its Q-values at the first ``B`` inputs of ``outputs`` (a
+        :meth:`_mlp_forward` pass): backpropagation written out, a few batched matrix products."""
+        params = self._unflatten(flat)
+        n = grad_q.shape[1]
+        grads: dict[str, th.Tensor] = {}
+        grad = grad_q  # with respect to the output of the layer being undone
+        for i in range(len(self._layers) - 1, -1, -1):
+            kind, item = self._layers[i]
+            if kind == "linear":
+                layer_input = outputs[i][:, :n]
+                grads[item + ".weight"] = th.bmm(grad.transpose(1, 2), layer_input)
+                grads[item + ".bias"] = grad.sum(dim=1)
+                if i > 0:
+                    grad = th.bmm(grad, params[item + ".weight"])
+            else:  # ReLU: the gradient passes where the output is positive
+                grad = grad * (outputs[i + 1][:, :n] > 0)
+        return th.cat([grads[name].reshape(len(flat), -1) for name in self._names], dim=1)
 
     def _grow(self, capacity: int) -> None:
         def extend(old: th.Tensor) -> th.Tensor:
@@ -326,9 +359,14 @@ class StackedDQN:
     def q_values(self, goals: np.ndarray, obs: np.ndarray) -> th.Tensor:
         """Q-values ``(n, A)`` of sub-goal ``goals[i]``'s learner at ``obs[i]``."""
         goals = np.asarray(goals, dtype=np.int64)
+        # each distinct learner reads every observation (envs often pursue the same sub-goals): its parameters
+        # are read once, in place when they are the first rows, instead of gathered once per env
+        distinct, inverse = np.unique(goals, return_inverse=True)
+        rows: Any = slice(0, len(distinct)) if distinct[-1] == len(distinct) - 1 else th.as_tensor(distinct, device=self.device)
         with th.no_grad():
             obs_t = self._tensor(np.asarray(obs))
-            return self._vq(self.params[th.as_tensor(goals, device=self.device)], obs_t[:, None])[:, 0]
+            q = self._vq(self.params[rows], obs_t.unsqueeze(0).expand(len(distinct), *obs_t.shape))  # (U, n, A)
+            return q[th.as_tensor(inverse.reshape(-1), device=self.device), th.arange(len(goals), device=self.device)]
 
     def act(self, goals: np.ndarray, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
         """One primitive action per env: sub-goal ``goals[i]``'s learner at ``obs[i]``, epsilon-greedy unless
@@ -388,61 +426,68 @@ class StackedDQN:
         sub-goal, the Double DQN target of its n-step returns (raised to the behaviour's return with the lower
         bound), the importance-weighted Huber loss, each sub-goal's gradient clipped to ``max_grad_norm``, Adam."""
         batch = self.replay.sample(goals, self.batch_size)
-        index = th.as_tensor(goals, device=self.device)
-        params = self.params[index].requires_grad_()
+        # the learners' rows: a view when they are the first len(goals) (every sub-goal, the usual case), else a copy
+        index: Any = slice(0, len(goals)) if np.array_equal(goals, np.arange(len(goals))) else th.as_tensor(goals, device=self.device)
+        params = self.params[index]
         as_t = lambda x: th.as_tensor(x, device=self.device)  # noqa: E731
         lower_bound = batch.behaviour_returns is not None
+        # the closing states of the own returns and (lower bound) of the behaviour's
+        next_obs = batch.next_observations
+        if lower_bound:
+            next_obs = np.concatenate([next_obs, batch.behaviour_next_observations], axis=1)
+        n = len(batch.returns[0])
+        actions = as_t(batch.actions.reshape(len(goals), -1, 1).astype(np.int64))
+        weights = as_t(batch.weights)
+        if self._relu_mlp:  # one forward pass of the online networks over s and the closing states, backward by hand
+            outputs = self._mlp_forward(params, self._mlp_input(self._tensor(np.concatenate([batch.observations, next_obs], axis=1))))
+            q_all = outputs[-1]
+            q, next_q_online = q_all[:, :n].gather(-1, actions)[..., 0], q_all[:, n:]
+        else:
+            params = params.detach().clone().requires_grad_()
+            q = self._vq(params, self._tensor(batch.observations)).gather(-1, actions)[..., 0]
+            next_q_online = None
         with th.no_grad():
-            # the closing states of the own returns and (lower bound) of the behaviour's, in one forward per network
-            next_obs = batch.next_observations
-            if lower_bound:
-                next_obs = np.concatenate([next_obs, batch.behaviour_next_observations], axis=1)
             next_obs_t = self._tensor(next_obs)
             next_q_target = self._vq(self.target[index], next_obs_t)  # (T, B or 2B, A)
-            next_q_online = self._vq(params.detach(), next_obs_t) if self.double_q else next_q_target
+            if not self.double_q:
+                next_q_online = next_q_target
+            elif next_q_online is None:
+                next_q_online = self._vq(params.detach(), next_obs_t)
             next_q = next_q_target.gather(-1, next_q_online.argmax(-1, keepdim=True))[..., 0]
-            n = len(batch.returns[0])
             y = as_t(batch.returns) + as_t(batch.discounts) * (1 - as_t(batch.dones)) * next_q[:, :n]
             if lower_bound:  # optimality tightening: the behaviour's return is a lower bound
                 y_behaviour = (as_t(batch.behaviour_returns)
                                + as_t(batch.behaviour_discounts) * (1 - as_t(batch.behaviour_dones)) * next_q[:, n:])
                 y = th.maximum(y, y_behaviour)
-        actions = as_t(batch.actions.reshape(len(goals), -1, 1).astype(np.int64))
-        q = self._vq(params, self._tensor(batch.observations)).gather(-1, actions)[..., 0]
-        weights = as_t(batch.weights)
         loss = (weights * F.smooth_l1_loss(q, y, reduction="none")).mean(dim=1)  # (T,): each sub-goal's own loss
-        (grad,) = th.autograd.grad(loss.sum(), [params])
-        self._adam(index, grad)
+        if self._relu_mlp:
+            # d loss / d q: the Huber loss's derivative clamp(q - y, -1, 1), weighted, over the batch, at the actions taken
+            grad_q = th.zeros_like(q_all[:, :n]).scatter_(-1, actions, ((weights * (q - y).clamp(-1, 1)) / n)[..., None])
+            grad = self._mlp_backward(params, outputs, grad_q)
+        else:
+            (grad,) = th.autograd.grad(loss.sum(), [params])
+        self._adam(goals, grad)
         td_errors = (y - q).detach().abs().cpu().numpy()
         self.replay.update_priorities(goals, batch.leaves, td_errors)
         self.n_updates[goals] += 1
         self.last_loss = float(loss.mean().detach())
         return self.last_loss
 
-    def _adam(self, index: th.Tensor, grad: th.Tensor, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8) -> None:
-        """Adam (torch's defaults) with each sub-goal's own step count, after clipping each sub-goal's gradient
-        norm to ``max_grad_norm`` (as SB3 clips a model's). Sub-goals ``0..n-1`` (all of them, the usual case)
-        are updated in place through views; any other set through gathered rows."""
+    def _adam(self, goals: np.ndarray, grad: th.Tensor, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8) -> None:
+        """Adam (torch's, its fused kernel) with each sub-goal's own step count, after clipping each sub-goal's
+        gradient norm to ``max_grad_norm`` (as SB3 clips a model's); the rows of ``goals`` are updated in place."""
         grad = grad * th.clamp(self.max_grad_norm / (grad.norm(dim=1, keepdim=True) + 1e-6), max=1.0)
-        n = len(index)
-        rows: Any = slice(0, n) if bool((index == th.arange(n, device=index.device)).all()) else index
-        self.adam_steps[rows] += 1
-        steps = self.adam_steps[rows]
-        correction1 = (1 - betas[0] ** steps).float().unsqueeze(1)
-        correction2 = (1 - betas[1] ** steps).float().unsqueeze(1)
-        m, v = self.exp_avg[rows], self.exp_avg_sq[rows]  # views for a slice, copies for an index
-        m.mul_(betas[0]).add_(grad, alpha=1 - betas[0])
-        v.mul_(betas[1]).addcmul_(grad, grad, value=1 - betas[1])
-        # moments that decay towards 0 would become subnormal floats, which CPUs multiply ~30x slower: adding and
-        # taking away a small normal number sends anything below its last bit (~1e-37) to exactly 0
-        m.add_(_TINY).sub_(_TINY)
-        v.add_(_TINY).sub_(_TINY)
-        step = (m / correction1).div_((v / correction2).sqrt_().add_(eps)).mul_(self.lr)
-        if isinstance(rows, slice):
-            self.params[rows].sub_(step)
-        else:
-            self.exp_avg[rows], self.exp_avg_sq[rows] = m, v
-            self.params[rows] = self.params[rows] - step
+        self.adam_steps[goals] += 1
+        steps = [th.tensor(float(step), device=self.device) for step in self.adam_steps[goals]]
+        th._fused_adam_([self.params[g] for g in goals], list(grad.unbind(0)), [self.exp_avg[g] for g in goals],
+                        [self.exp_avg_sq[g] for g in goals], [], steps, lr=self.lr, beta1=betas[0], beta2=betas[1],
+                        weight_decay=0.0, eps=eps, amsgrad=False, maximize=False)
+        if self.rounds % 1000 == 0:
+            # moments that decay towards 0 (inputs that are always 0) become subnormal floats, which CPUs multiply
+            # several times slower: adding and taking away a small normal number now and then sends anything below
+            # its last bit (~1e-37) to exactly 0
+            for moment in (self.exp_avg, self.exp_avg_sq):
+                moment.add_(_TINY).sub_(_TINY)
 
     # ------------------------------------------------------------------ SB3 views, save / load
     def policy(self, goal: int) -> DQNPolicy:
