@@ -82,30 +82,35 @@ class GoalTrees:
         self._flush()
         return self._sum[trees, 1]
 
+    def _bases(self, trees: np.ndarray) -> np.ndarray:
+        """Where each tree of ``trees`` starts in the flattened array, as a column ``(T, 1)`` (one flat index per
+        node is faster to gather than a pair of indices)."""
+        return (np.asarray(trees, dtype=np.int64) * self._sum.shape[1])[:, None]
+
     def update(self, trees: np.ndarray, leaves: np.ndarray, priorities: np.ndarray) -> None:
         """Set ``priorities`` (shape ``(T, B)``) of ``leaves`` (same shape) in ``trees`` (shape ``(T,)``)."""
         self._flush()
-        rows = np.broadcast_to(np.asarray(trees)[:, None], leaves.shape)
-        self._sum[rows, self._size + leaves] = priorities
+        flat, bases = self._sum.reshape(-1), self._bases(trees)
+        flat[bases + self._size + leaves] = priorities
         self.max_priority[trees] = np.maximum(self.max_priority[trees], priorities.max(axis=1))
-        nodes = (self._size + leaves) >> 1
+        nodes = bases + ((self._size + leaves) >> 1)
         for _ in range(self._depth):
-            self._sum[rows, nodes] = self._sum[rows, 2 * nodes] + self._sum[rows, 2 * nodes + 1]
-            nodes = nodes >> 1
+            flat[nodes] = flat[nodes + (nodes - bases)] + flat[nodes + (nodes - bases) + 1]
+            nodes = bases + ((nodes - bases) >> 1)
 
     def sample(self, trees: np.ndarray, batch_size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """``batch_size`` stratified draws in each of ``trees``: leaves ``(T, B)`` and their probabilities."""
         totals = self.total(trees)
         values = (np.arange(batch_size)[None, :] + rng.random((len(trees), batch_size))) * (totals[:, None] / batch_size)
-        rows = np.broadcast_to(np.asarray(trees)[:, None], values.shape)
+        flat, bases = self._sum.reshape(-1), self._bases(trees)
         nodes = np.ones(values.shape, dtype=np.int64)
         for _ in range(self._depth):
-            left = 2 * nodes
-            left_sum = self._sum[rows, left]
-            go_right = (values >= left_sum) & (self._sum[rows, left + 1] > 0)
-            values = np.where(go_right, values - left_sum, values)
-            nodes = np.where(go_right, left + 1, left)
-        return nodes - self._size, self._sum[rows, nodes] / totals[:, None]
+            left = bases + 2 * nodes
+            left_sum = flat[left]
+            go_right = (values >= left_sum) & (flat[left + 1] > 0)
+            values = values - left_sum * go_right
+            nodes = 2 * nodes + go_right
+        return nodes - self._size, flat[bases + nodes] / totals[:, None]
 
 
 class GoalBatch(NamedTuple):
