@@ -909,3 +909,18 @@ def test_cnn_policy_reads_minigrid_grids_with_a_small_cnn() -> None:
     obs = observations()
     features = GridCNN(model.primitive_observation_space)(th.as_tensor(obs))
     assert features.shape == (len(obs), 128)
+
+
+def test_the_facts_questions_carry_are_recorded_only_while_questions_can_be_asked() -> None:
+    model = make_model(query_budget=2)
+    model.learn(2_000)
+    assert model.query_selector.remaining == 0
+    assert model.options.record_privileged is False
+    model.learn(300, reset_num_timesteps=False)
+    assert model._last_trace.high_privileged and all(facts is None for facts in model._last_trace.high_privileged)
+    asked = model.query_selector.used
+    model.after_episode(model._last_trace)  # an episode without facts asks nothing
+    assert model.query_selector.used == asked
+    with_budget = make_model(query_budget=1_000)
+    with_budget.learn(600)
+    assert with_budget.options.record_privileged and all("grid" in facts for facts in with_budget._last_trace.high_privileged)

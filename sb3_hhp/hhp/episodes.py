@@ -47,6 +47,8 @@ class BetweenEpisodes:
     def after_episode(self: Any, trace: EpisodeTrace) -> None:
         """Everything Algorithm 1 does between an episode and the meta-controller's updates."""
         self.ask_preferences(trace)
+        # the facts a question carries are recorded at each choice only while questions can still be asked
+        self.options.record_privileged = self.oracle is not None and self.query_selector.remaining > 0
         self.receive_answers()
         self.discover_subgoals(trace)
         self.update_curiosity(trace)
@@ -65,8 +67,8 @@ class BetweenEpisodes:
             returns = np.cumsum(np.asarray(trace.high_returns)[::-1])[::-1]  # line 24, undiscounted
             oracle.observe(states[: len(returns)], goal_obs[goals[: len(returns)]], returns)
             oracle.train()
-        if self.query_selector.remaining == 0 or len(self.subgoals) < 2:
-            return
+        if self.query_selector.remaining == 0 or len(self.subgoals) < 2 or None in trace.high_privileged:
+            return  # no budget, nothing to compare, or an episode played while no question could be asked
         # a question is (an equivalent state, an unordered pair of sub-goals): states the predictor reads alike are
         # equivalent, and a question asked before (in this run or one it resumes) is never asked again
         inputs = self.predictor_inputs(states)

@@ -456,6 +456,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         self._mask_cache: dict[Any, np.ndarray] = {}  # (state key, present) -> choosable sub-goals, emptied when G changes
         self._present_cache: dict[bytes, tuple] = {}  # observation bytes -> (key, present)
         self.recent_choices: deque = deque(maxlen=1_000)
+        self._unscored: list = []  # choices stored in R_H whose preference bonus is not yet in sigma(R_p)
         self.last_predictor_stats: dict[str, float] = {}
         self.last_confidences: np.ndarray = np.zeros(0)
         self._last_trace = EpisodeTrace()
@@ -648,8 +649,11 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 self._store_choices(replay_buffer, ended)
             callback.update_locals(locals())
             if not callback.on_step():
+                self._score_ended_choices()
                 return RolloutReturn(num_collected_steps * options.num_envs, num_collected_episodes, continue_training=False)
             self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
+            if episodes:
+                self._score_ended_choices()
             for episode in episodes:
                 num_collected_episodes += 1
                 self._episode_num += 1
@@ -658,6 +662,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 self.after_episode(episode.trace)  # lines 24-29, 35
                 if log_interval is not None and self._episode_num % log_interval == 0:
                     self.dump_logs()
+        self._score_ended_choices()
         self._rollout_episodes = num_collected_episodes
         callback.on_rollout_end()
         return RolloutReturn(num_collected_steps * options.num_envs, num_collected_episodes, True)
@@ -676,6 +681,15 @@ class HhP(BetweenEpisodes, DoubleDQN):
                               np.array([option.extrinsic_return], dtype=np.float32), np.array([done]), [info])
             self._on_step()
         if self.use_preferences and len(self.predictor) > 0:
+            self._unscored.extend(ended)
+
+    def _score_ended_choices(self) -> None:
+        """The preference bonuses of the choices stored since the last call, scored in one batch and folded into
+        sigma(R_p) in the order the choices ended (line 12). Called before the predictor or the sub-goal set can
+        change (before the work between episodes) and when a rollout ends, so every bonus is the one the predictor
+        gave when its choice ended, at one forward per episode rather than one per step."""
+        ended, self._unscored = self._unscored, []
+        if ended:
             states = np.stack([option.obs for option in ended])
             self.return_normalizer.update(self.preference_bonus(states, np.array([option.goal for option in ended])))
 
@@ -854,7 +868,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             "options", "subgoal_set", "_last_trace", "rnd", "predictor", "query_selector", "return_normalizer", "subpolicies", "discovery",
             "store", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
             "last_confidences", "consumed_query_ids", "initial_subgoals", "_asked_signatures", "_mask_cache", "_present_cache",
-            "_bonus_key", "_bonus_cache", "_bonus_valid",
+            "_bonus_key", "_bonus_cache", "_bonus_valid", "_unscored",
         ]
 
     def components_state(self) -> dict[str, Any]:

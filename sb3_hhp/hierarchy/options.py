@@ -166,6 +166,8 @@ class OptionRunner:
         self.goal_space, self.subgoals, self.learners, self.rnd = goal_space, subgoals, learners, rnd
         self.max_subgoal_steps = max_subgoal_steps
         self.record_images = record_images
+        #: record the privileged facts of s_t at each choice (questions need them; None is stored while not)
+        self.record_privileged = True
         self.num_envs = venv.num_envs
         self.action_space = venv.action_space
         n = self.num_envs
@@ -209,7 +211,7 @@ class OptionRunner:
             trace.high_obs.append(self.choice_obs[env])
             trace.high_goals.append(int(goal))
             view = env_view(self.venv, int(env))
-            trace.high_privileged.append(self.goal_space.privileged(view))
+            trace.high_privileged.append(self.goal_space.privileged(view) if self.record_privileged else None)
             if self.record_images:
                 trace.high_images.append(self.goal_space.render(view))
 
