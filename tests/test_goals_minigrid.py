@@ -427,3 +427,32 @@ def test_features_are_one_hots_of_carried_front_and_the_objects_present() -> Non
     moved[0, 4], moved[4, 0] = obs[4, 0], obs[0, 4]  # the goal elsewhere: same description
     np.testing.assert_array_equal(space.features(np.stack([obs, moved])), np.repeat(features, 2, axis=0))
     assert MiniGridGoalSpace(use_color=True).features(obs).shape[1] == features.shape[1] + 2 * len(COLORS)
+
+
+def test_plans_open_boxes_for_what_they_hold_and_stop_at_their_time_limit() -> None:
+    """ObstructedMaze: the key to the locked door lies in a box, and a ball blocks the door."""
+    import time
+
+    env = gym.make("MiniGrid-ObstructedMaze-1Q-v1")
+    env.reset(seed=0)
+    goal_space = MiniGridGoalSpace()
+    facts = goal_space.privileged(env)
+    base = env.unwrapped
+    boxes = [(x, y) for x in range(base.width) for y in range(base.height)
+             if base.grid.get(x, y) is not None and base.grid.get(x, y).type == "box"]
+    # the boxes' contents, which their encodings do not show
+    assert sorted((x, y) for x, y, _ in facts["boxes"]) == sorted(boxes)
+    assert all(held[0] == OBJECT_TO_IDX["key"] for _, _, held in facts["boxes"])
+    keys = plan_keys(facts, goal_space)
+    assert keys is not None and keys[-1] == SUCCESS_KEY
+    box, key, ball = OBJECT_TO_IDX["box"], OBJECT_TO_IDX["key"], OBJECT_TO_IDX["ball"]
+    facing_box = keys.index((EMPTY, box, 0))
+    assert keys[facing_box + 1] == (EMPTY, key, 0)  # the box opened: its key lies in front
+    assert keys.index((key, OBJECT_TO_IDX["door"], STATE_TO_IDX["locked"])) > facing_box
+    assert (ball, EMPTY, 0) in keys  # the ball that blocked the door carried away
+    # without the boxes' contents opening one leaves nothing: no plan, and the search stops at its time limit
+    began = time.perf_counter()
+    assert plan_keys({**facts, "boxes": []}, goal_space, max_seconds=0.1) is None
+    assert time.perf_counter() - began < 0.6
+    with pytest.raises(ValueError, match="max_seconds"):
+        MiniGridScriptedOracle(max_seconds=0)

@@ -26,6 +26,7 @@ from scipy import ndimage
 from stable_baselines3.common.monitor import Monitor
 from minigrid.core.constants import COLOR_TO_IDX, IDX_TO_OBJECT, OBJECT_TO_IDX, STATE_TO_IDX
 from minigrid.core.grid import Grid
+from minigrid.core.world_object import Box
 from minigrid.minigrid_env import MiniGridEnv
 
 from sb3_hhp.goals.base import SUCCESS_KEY, GoalSpace
@@ -47,6 +48,19 @@ N_OBJECTS, N_COLORS, N_STATES = len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE
 HIGHLIGHT_RGB = (255, 64, 200)
 #: brightness of the rest of the room in a sub-goal drawn in a state's layout
 DIM = 0.45
+
+
+#: the paper's MultiRoom task, which MiniGrid does not register: 12 rooms of at most 10x10 cells (a 25x25 grid,
+#: 240 steps)
+MULTIROOM_N12_S10 = "MiniGrid-MultiRoom-N12-S10-v0"
+
+
+def register_minigrid_tasks() -> None:
+    """Register the paper's MiniGrid tasks that MiniGrid has under no id of their own (:data:`MULTIROOM_N12_S10`);
+    ``sb3_hhp.train`` and the benchmark runner call it, a script calls it before ``gym.make``."""
+    if MULTIROOM_N12_S10 not in gym.registry:
+        gym.register(MULTIROOM_N12_S10, entry_point="minigrid.envs:MultiRoomEnv",
+                     kwargs=dict(minNumRooms=12, maxNumRooms=12, maxRoomSize=10))
 
 
 def find_minigrid(env: gym.Env) -> Optional[MiniGridEnv]:
@@ -258,6 +272,10 @@ class MiniGridGoalSpace(GoalSpace):
             "agent_dir": int(base.agent_dir),
             "carrying": list(base.carrying.encode()) if base.carrying is not None else None,
             "target": list(target.encode()[:2]) if target is not None else None,
+            # what each box holds (its encoding shows no contents; opening it leaves them in its place)
+            "boxes": [[x, y, list(obj.contains.encode()) if obj.contains is not None else None]
+                      for x, y, obj in ((i % base.width, i // base.width, obj) for i, obj in enumerate(base.grid.grid))
+                      if isinstance(obj, Box)],
         }
 
     def render(self, env: gym.Env) -> Optional[np.ndarray]:
