@@ -339,10 +339,11 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
     from stable_baselines3.common.env_util import make_vec_env
 
     from sb3_hhp.curiosity import VecRNDReward
-    from sb3_hhp.goals import wrap_env
+    from sb3_hhp.goals import register_minigrid_tasks, wrap_env
     from sb3_hhp.train import domain_of, eval_seeds, evaluate
 
     th.set_num_threads(1)
+    register_minigrid_tasks()
     settings = baseline_settings(sweep.baselines_conf, experiment.variant, experiment.env)
     n_envs = int(settings.pop("n_envs", 1))
     policy = settings.pop("policy", "MlpPolicy")

@@ -520,8 +520,10 @@ def check_env_id(env_id: Optional[str], gym_packages: Sequence[str] = ()) -> str
     import gymnasium as gym
 
     from sb3_hhp.extras import missing_extra_hint, register_fetch_envs
+    from sb3_hhp.goals import register_minigrid_tasks
 
     register_fetch_envs()  # the Fetch tasks, with the [fetch] extra (rl_zoo3 does not register them)
+    register_minigrid_tasks()  # the paper's MultiRoom-N12-S10
     with contextlib.redirect_stderr(io.StringIO()):  # gymnasium-robotics prints a notice on Adroit envs at import
         import rl_zoo3.import_envs  # noqa: F401  registers MiniGrid, ALE, ...
 

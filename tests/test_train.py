@@ -11,7 +11,7 @@ import optuna
 import pytest
 import yaml
 
-from sb3_hhp import train
+from sb3_hhp import HhP, train
 from sb3_hhp.train import ConfigError, eval_seeds, select_entry, validate_hyperparams
 
 REPO = Path(__file__).resolve().parent.parent
@@ -257,3 +257,20 @@ def test_hhp_is_registered_with_rl_zoo() -> None:
         params = train.sample_hhp_params(study.ask(), 0, 1, {})
         assert 25 <= params["query_budget"] <= 400 and 0.0 <= params["beta"] <= 1.0
         assert ("t_qry" in params) == (params["query_mode"] == "fixed")
+
+
+@pytest.mark.parametrize("env_id", ["MiniGrid-DoorKey-16x16-v0", "MiniGrid-KeyCorridorS4R3-v0", "MiniGrid-ObstructedMaze-1Q-v1",
+                                    "MiniGrid-MultiRoom-N12-S10-v0"])
+def test_the_papers_four_minigrid_tasks_have_entries_that_build(env_id: str) -> None:
+    import gymnasium as gym
+
+    assert train.check_env_id(env_id) == env_id  # MultiRoom-N12-S10 is registered by sb3_hhp
+    table = yaml.safe_load(train.default_config_path().read_text())
+    assert train.select_entry(table, env_id) == env_id and table[env_id]["n_timesteps"] == 2e6
+    hyperparams = {key: value for key, value in table[env_id].items() if key not in train.ZOO_KEYS}
+    model = HhP("MlpPolicy", gym.make(env_id), **{**hyperparams, "oracle": None, "n_masks": 2})
+    if env_id.startswith("MiniGrid-ObstructedMaze"):
+        assert model.goal_space.use_color  # two keys of different colours
+    if env_id == "MiniGrid-MultiRoom-N12-S10-v0":
+        base = model.env.envs[0].unwrapped
+        assert (base.minNumRooms, base.maxNumRooms, base.maxRoomSize, base.width) == (12, 12, 10, 25)

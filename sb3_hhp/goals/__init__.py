@@ -7,10 +7,12 @@ import gymnasium as gym
 from sb3_hhp.goals.base import SUCCESS_KEY, GoalSpace
 from sb3_hhp.goals.fetch import FetchFlatObs, FetchGoalSpace, find_fetch
 from sb3_hhp.goals.image import ImageGoalSpace
-from sb3_hhp.goals.minigrid import MiniGridEgocentricObs, MiniGridGoalSpace, find_minigrid
+from sb3_hhp.goals.minigrid import MiniGridEgocentricObs, MiniGridGoalSpace, find_minigrid, register_minigrid_tasks
 
 #: in the order "auto" tries them
 GOAL_SPACES: dict[str, type[GoalSpace]] = {"minigrid": MiniGridGoalSpace, "fetch": FetchGoalSpace, "image": ImageGoalSpace}
+#: goal spaces with settings, by name (for the YAML): MiniGrid keys that tell objects apart by colour (several keys)
+NAMED_GOAL_SPACES = {"minigrid_color": lambda: MiniGridGoalSpace(use_color=True)}
 
 
 def wrap_env(env: gym.Env) -> gym.Env:
@@ -31,8 +33,11 @@ def make_goal_space(goal_space: Union[str, GoalSpace], env: gym.Env) -> GoalSpac
         candidates = [cls() for cls in GOAL_SPACES.values() if cls.supports(env)]
     elif goal_space in GOAL_SPACES:
         candidates = [GOAL_SPACES[goal_space]()]
+    elif goal_space in NAMED_GOAL_SPACES:
+        candidates = [NAMED_GOAL_SPACES[goal_space]()]
     else:
-        raise ValueError(f"Unknown goal space {goal_space!r}: use 'auto', one of {sorted(GOAL_SPACES)} or a GoalSpace")
+        raise ValueError(f"Unknown goal space {goal_space!r}: use 'auto', one of {sorted({**GOAL_SPACES, **NAMED_GOAL_SPACES})} "
+                         "or a GoalSpace")
     if not candidates or not candidates[0].supports(env):
         raise ValueError(
             f"No goal space supports this env (observation space {env.observation_space}). "
@@ -45,4 +50,5 @@ def make_goal_space(goal_space: Union[str, GoalSpace], env: gym.Env) -> GoalSpac
     return candidates[0]
 
 
-__all__ = ["GOAL_SPACES", "SUCCESS_KEY", "FetchFlatObs", "FetchGoalSpace", "GoalSpace", "ImageGoalSpace", "MiniGridEgocentricObs", "MiniGridGoalSpace", "make_goal_space", "wrap_env"]
+__all__ = ["GOAL_SPACES", "NAMED_GOAL_SPACES", "SUCCESS_KEY", "FetchFlatObs", "FetchGoalSpace", "GoalSpace", "ImageGoalSpace",
+           "MiniGridEgocentricObs", "MiniGridGoalSpace", "make_goal_space", "register_minigrid_tasks", "wrap_env"]
