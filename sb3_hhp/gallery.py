@@ -20,7 +20,7 @@ from typing import Any, Optional, Union
 
 import numpy as np
 
-from sb3_hhp.preferences.store import encode_png
+from sb3_hhp.preferences.codecs import encode_png
 
 __all__ = ["main", "write_gallery"]
 

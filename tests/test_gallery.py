@@ -8,7 +8,7 @@ import pytest
 from matplotlib.image import imread
 
 from sb3_hhp.gallery import main, write_gallery
-from sb3_hhp.preferences.store import decode_png
+from sb3_hhp.preferences.codecs import decode_png
 
 
 def records(n: int) -> list[dict]:

@@ -12,7 +12,8 @@ from sb3_hhp.label.app import create_app
 from sb3_hhp.label.server import LabelServer, check_bind, is_loopback
 from sb3_hhp.oracles.base import Label, Query
 from sb3_hhp.oracles.web import WebOracle
-from sb3_hhp.preferences.store import PreferenceStore, decode_png
+from sb3_hhp.preferences.codecs import decode_png
+from sb3_hhp.preferences.store import PreferenceStore
 
 
 def make_query(seed: int, asked_at: float = 0.0) -> Query:

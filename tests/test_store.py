@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from sb3_hhp.oracles.base import Answer, Label, Query
-from sb3_hhp.preferences.store import SCHEMA_VERSION, AlreadyAnswered, PreferenceStore, decode_png, encode_png
+from sb3_hhp.preferences.codecs import decode_png, encode_png
+from sb3_hhp.preferences.store import SCHEMA_VERSION, AlreadyAnswered, PreferenceStore
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

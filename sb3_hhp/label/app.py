@@ -43,14 +43,9 @@ from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
 
 from sb3_hhp.goals.base import GoalSpace
+from sb3_hhp.preferences.codecs import encode_png
+from sb3_hhp.preferences.store import IMAGE_KINDS, MAX_SUBGOAL_ID, AlreadyAnswered, PreferenceStore
 from sb3_hhp.preferences.types import Label
-from sb3_hhp.preferences.store import (
-    IMAGE_KINDS,
-    MAX_SUBGOAL_ID,
-    AlreadyAnswered,
-    PreferenceStore,
-    encode_png,
-)
 
 __all__ = ["IMAGE_NAMES", "LEASE_GRACE_S", "MAX_BODY_BYTES", "MAX_ID_LENGTH", "create_app"]
 

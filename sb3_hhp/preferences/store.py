@@ -13,12 +13,9 @@ holds only the answered queries and their answers; it can be loaded
 (:meth:`PreferenceStore.import_dataset`).
 """
 
-import enum
-import io
 import json
 import math
 import os
-import pathlib
 import sqlite3
 import threading
 import time
@@ -26,12 +23,12 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any, Optional, Union
 
-import cv2
 import numpy as np
 
+from sb3_hhp.preferences.codecs import decode_array, decode_png, encode_array, encode_info, encode_png
 from sb3_hhp.preferences.types import Answer, Label, Query
 
-__all__ = ["AlreadyAnswered", "PreferenceStore", "decode_png", "encode_png"]
+__all__ = ["AlreadyAnswered", "PreferenceStore"]
 
 #: identifies a preference store in its ``meta`` table
 STORE_FORMAT = "sb3_hhp.preferences"
@@ -99,91 +96,6 @@ _QUERY_COLUMNS = (
 
 class AlreadyAnswered(ValueError):
     """Raised when a query that already has an answer receives a second one."""
-
-
-# --------------------------------------------------------------------------------------------
-# encoding helpers
-
-
-def encode_png(image: np.ndarray, name: str = "image") -> bytes:
-    """Encode an RGB(A) or grayscale uint8 image as PNG bytes (lossless).
-
-    :param image: array (H, W), (H, W, 1), (H, W, 3) RGB or (H, W, 4) RGBA of dtype uint8
-    :param name: what the image is, for the error message
-    :return: the PNG file's bytes
-    """
-    image = np.asarray(image)
-    if image.dtype != np.uint8:
-        raise ValueError(f"{name} must be a uint8 image, got dtype {image.dtype}; convert it with .astype(np.uint8)")
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
-    if image.ndim == 3 and image.shape[2] == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    elif image.ndim == 3 and image.shape[2] == 4:
-        image = cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA)
-    elif image.ndim != 2:
-        raise ValueError(f"{name} must have shape (H, W), (H, W, 1), (H, W, 3) or (H, W, 4), got {image.shape}")
-    if image.shape[0] == 0 or image.shape[1] == 0:
-        raise ValueError(f"{name} is empty (shape {image.shape})")
-    ok, buffer = cv2.imencode(".png", np.ascontiguousarray(image))
-    if not ok:  # pragma: no cover - cv2 fails only on unsupported layouts, rejected above
-        raise ValueError(f"OpenCV could not encode {name} of shape {image.shape} as PNG")
-    return buffer.tobytes()
-
-
-def decode_png(data: bytes) -> np.ndarray:
-    """Decode PNG bytes written by :func:`encode_png` back to an RGB(A) or grayscale uint8 array."""
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise ValueError("The stored bytes are not a PNG image")
-    if image.ndim == 3 and image.shape[2] == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-    elif image.ndim == 3 and image.shape[2] == 4:
-        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA)
-    return image
-
-
-def _encode_array(value: Any, name: str) -> bytes:
-    """An observation as ``.npy`` bytes, or ``.npz`` bytes for a dict observation (no pickling)."""
-    buffer = io.BytesIO()
-    if isinstance(value, dict):
-        np.savez(buffer, **{str(key): np.asarray(item) for key, item in value.items()})
-    else:
-        array = np.asarray(value)
-        if array.dtype == object:
-            raise ValueError(f"{name} must be a numeric array (or a dict of arrays), got an object array")
-        np.save(buffer, array, allow_pickle=False)
-    return buffer.getvalue()
-
-
-def _decode_array(data: bytes) -> Union[np.ndarray, dict]:
-    if data[:2] == b"PK":  # a zip archive: np.savez of a dict observation
-        with np.load(io.BytesIO(data), allow_pickle=False) as archive:
-            return {key: archive[key] for key in archive.files}
-    return np.load(io.BytesIO(data), allow_pickle=False)
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, enum.Enum):
-        return value.value
-    if isinstance(value, (set, frozenset)):
-        return sorted(value, key=repr)
-    if isinstance(value, (pathlib.PurePath, bytes)):
-        return str(value)
-    raise TypeError(f"Query.info holds a {type(value).__name__}, which cannot be stored as JSON")
-
-
-def _encode_info(info: dict) -> str:
-    if not isinstance(info, dict):
-        raise ValueError(f"Query.info must be a dict, got {type(info).__name__}")
-    try:
-        return json.dumps(info, default=_json_default, allow_nan=True)
-    except TypeError as error:
-        raise ValueError(f"{error}; keep Query.info to numbers, strings, lists, dicts and numpy arrays") from error
 
 
 def _optional_float(value: Any, name: str) -> Optional[float]:
@@ -326,13 +238,13 @@ class PreferenceStore:
             run_id,
             int(query.goal1),
             int(query.goal2),
-            _encode_array(query.state, "Query.state"),
-            _encode_array(query.goal1_obs, "Query.goal1_obs"),
-            _encode_array(query.goal2_obs, "Query.goal2_obs"),
+            encode_array(query.state, "Query.state"),
+            encode_array(query.goal1_obs, "Query.goal1_obs"),
+            encode_array(query.goal2_obs, "Query.goal2_obs"),
             None if query.state_image is None else encode_png(query.state_image, "Query.state_image"),
             None if query.goal1_image is None else encode_png(query.goal1_image, "Query.goal1_image"),
             None if query.goal2_image is None else encode_png(query.goal2_image, "Query.goal2_image"),
-            _encode_info(query.info),
+            encode_info(query.info),
             float(query.asked_at),
         )
         with self._transaction() as conn:
@@ -601,7 +513,7 @@ class PreferenceStore:
                     _optional_float(record.get("success_rate"), "success_rate"),
                     int(record.get("chosen_recently") or 0),
                     _optional_float(record.get("mean_score"), "mean_score"),
-                    _encode_info({} if record.get("name") is None else {"name": str(record["name"])}),
+                    encode_info({} if record.get("name") is None else {"name": str(record["name"])}),
                 )
             )
         with self._transaction() as conn:
@@ -765,11 +677,11 @@ def _check_sqlite_header(path: str) -> None:
 def _row_to_query(row: Sequence[Any]) -> Query:
     (query_id, _run_id, goal1, goal2, state, goal1_obs, goal2_obs, state_png, goal1_png, goal2_png, info, asked_at) = row
     return Query(
-        state=_decode_array(state),
+        state=decode_array(state),
         goal1=int(goal1),
         goal2=int(goal2),
-        goal1_obs=_decode_array(goal1_obs),
-        goal2_obs=_decode_array(goal2_obs),
+        goal1_obs=decode_array(goal1_obs),
+        goal2_obs=decode_array(goal2_obs),
         state_image=None if state_png is None else decode_png(bytes(state_png)),
         goal1_image=None if goal1_png is None else decode_png(bytes(goal1_png)),
         goal2_image=None if goal2_png is None else decode_png(bytes(goal2_png)),
