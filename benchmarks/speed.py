@@ -1,6 +1,6 @@
 """Speed and memory of HhP with the configuration users train with (the YAML entry of the env).
 
-Two measurements, one torch thread each:
+Three measurements, one torch thread each unless ``--threads``:
 
 ``ratio``: HhP (the env's ``hyperparams/hhp.yml`` entry) against flat SB3 DQN doing the same learning work per
 primitive step on the same observation (the entry's sub-goal learner: MLP, ``train_freq``, ``batch_size``), both
@@ -173,7 +173,7 @@ def subgoals(args: argparse.Namespace) -> dict[str, Any]:
     for k in args.counts:
         command = [sys.executable, __file__, "one", "--env", args.env, "--k", str(k), "--seed", str(args.seed),
                    "--start", str(args.start), "--stop", str(args.stop), "--hhp-kwargs", args.hhp_kwargs,
-                   "--n-envs", str(args.n_envs)]
+                   "--n-envs", str(args.n_envs), "--threads", str(args.threads)]
         rows.append(json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout.splitlines()[-1]))
         print(json.dumps(rows[-1]), flush=True)
     low, high = rows[0], rows[-1]
@@ -197,15 +197,16 @@ def main() -> None:
     parser.add_argument("--model", default=None, help="late: a saved HhP model to train on")
     parser.add_argument("--name", default=None, help="the result file's name (default: the measurement's)")
     parser.add_argument("--out", default="benchmarks/results/speed")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (HhP and the flat DQN alike)")
     args = parser.parse_args()
-    th.set_num_threads(1)
+    th.set_num_threads(args.threads)
     if args.what == "one":
         print(json.dumps(one_subgoal_count(args)))
         return
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()[0]
     result = {"ratio": ratio, "late": late, "subgoals": subgoals}[args.what](args)
-    result.update(threads=1, load_average_start=round(load_before, 2), load_average_end=round(os.getloadavg()[0], 2),
+    result.update(threads=args.threads, load_average_start=round(load_before, 2), load_average_end=round(os.getloadavg()[0], 2),
                   command=" ".join(sys.argv))
     (pathlib.Path(args.out) / f"{args.name or args.what}.json").write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))
