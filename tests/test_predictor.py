@@ -200,6 +200,24 @@ def test_confidence_runs_the_masks_once_per_distinct_input():
     np.testing.assert_allclose(confidence, expected[[0, 1, 0, 0]], rtol=1e-4)
 
 
+def test_an_input_met_again_keeps_its_spread_until_the_network_changes():
+    """Eq. 4 is a property of the network and the input: measured once per version of the network, met again for free
+    (late in a run, the same described states and sub-goals come back episode after episode)."""
+    n_masks = 5
+    noise = np.random.default_rng(0).normal(size=4 * n_masks)
+    predictor = make_predictor(n_masks=n_masks, mask_batch_size=100)
+    predictor.network = QueueNetwork(noise)
+    a, b, c = np.zeros(4, np.float32), np.ones(4, np.float32), np.full(4, 3.0, np.float32)
+    goal = np.full(4, 2.0, np.float32)
+    first = predictor.confidence(np.stack([a, b]), np.stack([goal] * 2))
+    again = predictor.confidence(np.stack([b, c, a]), np.stack([goal] * 3))
+    assert predictor.network.calls == [2 * n_masks, n_masks]  # only c was new
+    np.testing.assert_array_equal(again[[2, 0]], first)
+    predictor.version += 1  # what training or loading does to the network
+    predictor.confidence(a[None], goal[None])
+    assert predictor.network.calls == [2 * n_masks, n_masks, n_masks]  # measured again under the new weights
+
+
 def test_confidence_matches_explicit_stochastic_passes():
     rng = np.random.default_rng(0)
     predictor = make_predictor(dropout=0.2, n_masks=2000, spread="var", hidden_dim=64)

@@ -211,6 +211,10 @@ class PreferenceNetwork(nn.Module):
         return scores.reshape(len(state_part), len(goal_part))
 
 
+#: most inputs whose spread (eq. 4) is kept for the current version of the network
+MAX_CACHED_CONFIDENCES = 100_000
+
+
 class PreferencePredictor(OwnRandomState):
     """The preference predictor ``p_hat`` with its preference buffer ``R`` (Algorithm 1, lines 25-27).
 
@@ -274,6 +278,8 @@ class PreferencePredictor(OwnRandomState):
         self.observation_space = observation_space
         #: changes whenever the network's weights do (train, load): scores cached under another version are stale
         self.version = 0
+        self._confidences: dict[bytes, float] = {}  # eq. 4 of each input met under ``_confidence_version``
+        self._confidence_version = -1
         self.dropout = float(dropout)
         self.n_masks = int(n_masks)
         self.spread = spread
@@ -372,17 +378,22 @@ class PreferencePredictor(OwnRandomState):
         states_t, goals_t, n = self._pairs(states, goals)
         if self.dropout == 0.0 or self.n_masks < 2 or n == 0:
             return np.zeros(n, dtype=np.float32)
-        if n > 1:  # equal (state, goal) inputs have one spread: the masks run once on each distinct input
-            pairs = torch.cat([states_t.expand(n, *states_t.shape[1:]).reshape(n, -1),
-                               goals_t.expand(n, *goals_t.shape[1:]).reshape(n, -1)], dim=1)
-            distinct, inverse = torch.unique(pairs, dim=0, return_inverse=True)
-            if len(distinct) < n:
-                first = torch.full((len(distinct),), n, dtype=torch.long, device=inverse.device)
-                first = first.scatter_reduce(0, inverse, torch.arange(n, device=inverse.device), reduce="amin")
-                s_first = states_t if states_t.shape[0] == 1 else states_t[first]
-                g_first = goals_t if goals_t.shape[0] == 1 else goals_t[first]
-                return self._spread(s_first, g_first, len(distinct))[inverse.cpu().numpy()]
-        return self._spread(states_t, goals_t, n)
+        # equal (state, goal) inputs have one spread: the masks run once on each distinct input, and once per
+        # version of the network (an input met again before the predictor trains keeps the spread it was given)
+        pairs = torch.cat([states_t.expand(n, *states_t.shape[1:]).reshape(n, -1),
+                           goals_t.expand(n, *goals_t.shape[1:]).reshape(n, -1)], dim=1)
+        distinct, inverse = torch.unique(pairs, dim=0, return_inverse=True)
+        if self._confidence_version != self.version or len(self._confidences) > MAX_CACHED_CONFIDENCES:
+            self._confidences, self._confidence_version = {}, self.version
+        keys = [row.tobytes() for row in distinct.cpu().numpy()]
+        new = [i for i, key in enumerate(keys) if key not in self._confidences]
+        if new:
+            rows = distinct[new]
+            n_state = int(np.prod(states_t.shape[1:]))
+            spreads = self._spread(rows[:, :n_state].reshape(len(new), *states_t.shape[1:]),
+                                   rows[:, n_state:].reshape(len(new), *goals_t.shape[1:]), len(new))
+            self._confidences.update(zip((keys[i] for i in new), spreads))
+        return np.array([self._confidences[key] for key in keys], dtype=np.float32)[inverse.cpu().numpy()]
 
     def _spread(self, states_t: torch.Tensor, goals_t: torch.Tensor, n: int) -> np.ndarray:
         """Eq. 4 on tensors of ``n`` inputs (or one state / goal broadcast)."""
