@@ -18,12 +18,20 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def learning_test():
+    """The CI learning test's module (its training, evaluation and bars)."""
+    if str(ROOT / "tests") not in sys.path:
+        sys.path.insert(0, str(ROOT / "tests"))
+    import test_learning
+
+    return test_learning
+
+
 def calibrate(seed: int) -> dict:
-    sys.path.insert(0, str(ROOT / "tests"))
     import numpy as np
     import torch as th
-    import test_learning as learning
 
+    learning = learning_test()
     th.set_num_threads(1)
     begin = time.perf_counter()
     model = learning.train(seed)
@@ -39,9 +47,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=1, help="seeds at once, one process each")
     parser.add_argument("--out", default=None, help="a JSON file for the rows")
     args = parser.parse_args()
-    sys.path.insert(0, str(ROOT / "tests"))
-    import test_learning as learning
-
+    learning = learning_test()
     chance = learning.random_returns(learning.EVAL_SEEDS).mean()
     load = os.getloadavg()[0]
     with concurrent.futures.ProcessPoolExecutor(max_workers=args.jobs) as pool:

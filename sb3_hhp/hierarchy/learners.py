@@ -217,6 +217,13 @@ class StackedDQN:
         return {name: flat[..., start:stop].view(*lead, *shape)
                 for name, shape, start, stop in zip(self._names, self._shapes, self._offsets[:-1], self._offsets[1:])}
 
+    def _rows(self, goals: np.ndarray) -> Any:
+        """An index of the learners ``goals`` into the stacked tensors: a slice (rows read in place) when they are the
+        first ``len(goals)`` in order (every sub-goal, the usual case), else a tensor (rows gathered)."""
+        if np.array_equal(goals, np.arange(len(goals))):
+            return slice(0, len(goals))
+        return th.as_tensor(goals, device=self.device)
+
     def _mlp_input(self, obs: th.Tensor) -> th.Tensor:
         """What a plain MLP reads of ``obs`` ``(T, N, ...)``: SB3's preprocessing, flattened to ``(T, N, D)``."""
         x = preprocess_obs(obs, self.observation_space, normalize_images=self._normalize_images).float()
@@ -362,10 +369,9 @@ class StackedDQN:
         # each distinct learner reads every observation (envs often pursue the same sub-goals): its parameters
         # are read once, in place when they are the first rows, instead of gathered once per env
         distinct, inverse = np.unique(goals, return_inverse=True)
-        rows: Any = slice(0, len(distinct)) if distinct[-1] == len(distinct) - 1 else th.as_tensor(distinct, device=self.device)
         with th.no_grad():
             obs_t = self._tensor(np.asarray(obs))
-            q = self._vq(self.params[rows], obs_t.unsqueeze(0).expand(len(distinct), *obs_t.shape))  # (U, n, A)
+            q = self._vq(self.params[self._rows(distinct)], obs_t.unsqueeze(0).expand(len(distinct), *obs_t.shape))  # (U, n, A)
             return q[th.as_tensor(inverse.reshape(-1), device=self.device), th.arange(len(goals), device=self.device)]
 
     def act(self, goals: np.ndarray, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
@@ -426,8 +432,7 @@ class StackedDQN:
         sub-goal, the Double DQN target of its n-step returns (raised to the behaviour's return with the lower
         bound), the importance-weighted Huber loss, each sub-goal's gradient clipped to ``max_grad_norm``, Adam."""
         batch = self.replay.sample(goals, self.batch_size)
-        # the learners' rows: a view when they are the first len(goals) (every sub-goal, the usual case), else a copy
-        index: Any = slice(0, len(goals)) if np.array_equal(goals, np.arange(len(goals))) else th.as_tensor(goals, device=self.device)
+        index = self._rows(goals)
         params = self.params[index]
         as_t = lambda x: th.as_tensor(x, device=self.device)  # noqa: E731
         lower_bound = batch.behaviour_returns is not None

@@ -89,12 +89,15 @@ def plan_keys(
     parents: dict[tuple, Optional[tuple]] = {start: None}
     depth = {start: 0}
     queue = [(remaining(start[0], start[1]), 0, 0, start)]  # (steps + remaining, -steps, order, state)
-    order = 0
+    order = popped = 0
     goal_state = None
     while queue and len(parents) < max_nodes:
-        if deadline is not None and order % 256 == 0 and time.perf_counter() > deadline:
+        popped += 1
+        if deadline is not None and popped % 256 == 0 and time.perf_counter() > deadline:
             break
-        *_, state = heapq.heappop(queue)
+        _, negative_steps, _, state = heapq.heappop(queue)
+        if -negative_steps > depth[state]:
+            continue  # reached again by a shorter way since this entry was queued
         x, y, d, carried, changes = state
         steps = depth[state] + 1
         dx, dy = DIR_TO_VEC[d]
