@@ -36,6 +36,7 @@ from sb3_hhp.goals.minigrid import GOAL, MiniGridEgocentricObs, MiniGridGoalSpac
 from sb3_hhp.label.server import LabelServer
 from sb3_hhp.oracles.base import Label, Query
 from sb3_hhp.preferences.store import PreferenceStore
+from sb3_hhp.subgoal_table import SubgoalTable
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update"]
@@ -99,7 +100,7 @@ def fill_store(store: PreferenceStore, n_questions: int, seed: int) -> None:
         facts["agent_pos"] = [int(v) for v in goal_at]
         found[SUCCESS_KEY] = goal_space.image_in_state(facts)
     keys = sorted(found, key=repr)
-    store.put_subgoals(
+    SubgoalTable(store).put(
         [
             {"id": i, "image": found[key], "found_at": 100 * i, "name": goal_space.describe(key), "chosen_recently": 0}
             for i, key in enumerate(keys)

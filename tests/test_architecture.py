@@ -11,7 +11,8 @@ The layers, from the bottom up (a package may import from its own layer and the 
 0. ``extras``, ``dqn``, ``curiosity``, ``goals``, ``preferences``: the building blocks. The optional
    dependencies, the learners, RND, the domains' sub-goal spaces, and preference learning with its data
    types (``Query``, ``Label``, ``Answer``), the predictor, the query selection, the store and the
-   meta-controller's reward (eq. 3).
+   meta-controller's reward (eq. 3); ``subgoal_table``, the labeling page's sub-goal gallery kept in the
+   store's file.
 1. ``oracles``: answer preference queries; they use the preference types, the predictor's network (the
    synthetic oracle) and the goal spaces (the scripted oracles).
 2. ``discovery``, ``hierarchy``: sub-goal discovery, and the options with their subpolicies and rewards
@@ -37,7 +38,7 @@ PACKAGE_DIR = pathlib.Path(sb3_hhp.__file__).parent
 ROOT = "sb3_hhp"
 
 LAYERS: tuple[frozenset[str], ...] = (
-    frozenset({"extras", "dqn", "curiosity", "goals", "preferences"}),
+    frozenset({"extras", "dqn", "curiosity", "goals", "preferences", "subgoal_table"}),
     frozenset({"oracles"}),
     frozenset({"discovery", "hierarchy"}),
     frozenset({"hhp", ROOT}),

@@ -22,6 +22,8 @@ from sb3_hhp.goals import MiniGridGoalSpace, wrap_env
 from sb3_hhp.hhp.hhp import COMPONENTS_FILE
 from sb3_hhp.hierarchy.options import EpisodeTrace
 from sb3_hhp.oracles import Label
+from sb3_hhp.preferences.store import PreferenceStore
+from sb3_hhp.subgoal_table import SubgoalTable
 
 th.set_num_threads(1)
 
@@ -813,6 +815,18 @@ def test_resume_with_a_preference_database(tmp_path, budget: int, first_steps: i
               frozenset({loaded.subgoals[query.goal1].key, loaded.subgoals[query.goal2].key})) for query in questions]
     assert len(set(asked)) == len(asked)
     assert all(query.info.get("signature") for query in questions)
+
+
+def test_the_labeling_pages_gallery_is_written_into_the_preference_file(tmp_path) -> None:
+    db = str(tmp_path / "prefs.sqlite")
+    model = make_model(DOORKEY, preference_db=db, subgoal_learner="heads")  # heads: more sub-goals in these few steps
+    model.gallery_every = 1  # after every episode
+    model.learn(600)
+    with PreferenceStore(db, create=False) as other:  # as the labeling server reads it
+        gallery = SubgoalTable(other).records(with_images=False)
+    assert len(gallery) == len(model.subgoals) >= 2  # no sub-goal is found between an episode's end and learn's
+    assert [record["id"] for record in gallery] == list(range(len(model.subgoals)))
+    assert [record["name"] for record in gallery] == [model.goal_space.describe(goal.key) for goal in model.subgoals]
 
 
 def test_resume_feeds_labels_answered_after_the_save(tmp_path) -> None:

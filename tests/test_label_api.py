@@ -14,6 +14,7 @@ from sb3_hhp.oracles.base import Label, Query
 from sb3_hhp.oracles.web import WebOracle
 from sb3_hhp.preferences.codecs import decode_png
 from sb3_hhp.preferences.store import PreferenceStore
+from sb3_hhp.subgoal_table import SubgoalTable
 
 
 def make_query(seed: int, asked_at: float = 0.0) -> Query:
@@ -174,7 +175,7 @@ def test_subgoal_gallery_api(db):
     client = TestClient(create_app(store))
     assert client.get("/api/subgoals").json()["subgoals"] == []
     image = np.random.default_rng(1).integers(0, 255, (8, 8, 3), dtype=np.uint8)
-    store.put_subgoals(
+    SubgoalTable(store).put(
         [{"id": 4, "image": image, "found_at": 120, "success_rate": 0.5, "chosen_recently": 2, "mean_score": -0.3}]
     )
     [record] = client.get("/api/subgoals").json()["subgoals"]
@@ -344,7 +345,7 @@ def test_malformed_inputs_get_4xx_and_leave_the_db_unchanged(db):
     from sb3_hhp.label.app import MAX_BODY_BYTES, MAX_ID_LENGTH
 
     store, path = db
-    store.put_subgoals([{"id": 0, "image": np.zeros((4, 4, 3), np.uint8)}])
+    SubgoalTable(store).put([{"id": 0, "image": np.zeros((4, 4, 3), np.uint8)}])
     client = TestClient(create_app(store))
     before = dump(path)
     answer = {"query_id": "q0", "label": "FIRST", "annotator": "alice"}

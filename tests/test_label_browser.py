@@ -9,6 +9,7 @@ import pytest
 from sb3_hhp.label.server import LabelServer
 from sb3_hhp.oracles.base import Label, Query
 from sb3_hhp.preferences.store import PreferenceStore
+from sb3_hhp.subgoal_table import SubgoalTable
 
 pytestmark = pytest.mark.browser
 
@@ -118,7 +119,7 @@ def test_the_countdown_answers_cant_tell(browser):
 def test_the_gallery_page_shows_every_subgoal(browser):
     store = PreferenceStore()
     image = np.random.default_rng(0).integers(0, 255, (8, 8, 3), dtype=np.uint8)
-    store.put_subgoals(
+    SubgoalTable(store).put(
         [
             {"id": 0, "image": image, "found_at": 0, "success_rate": None, "chosen_recently": 0, "mean_score": None},
             {"id": 7, "image": image, "found_at": 900, "success_rate": 0.75, "chosen_recently": 4, "mean_score": 0.25},

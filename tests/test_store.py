@@ -13,6 +13,7 @@ import pytest
 from sb3_hhp.oracles.base import Answer, Label, Query
 from sb3_hhp.preferences.codecs import decode_png, encode_png
 from sb3_hhp.preferences.store import SCHEMA_VERSION, AlreadyAnswered, PreferenceStore
+from sb3_hhp.subgoal_table import SubgoalTable
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -185,30 +186,6 @@ def test_concurrent_writers_from_threads_and_a_second_connection(tmp_path):
     store.close()
 
 
-def test_subgoals_are_replaced_as_a_whole():
-    store = PreferenceStore()
-    image = np.random.default_rng(0).integers(0, 255, (8, 8, 3), dtype=np.uint8)
-    store.put_subgoals(
-        [
-            {"id": 1, "image": image, "found_at": 500, "success_rate": 0.25, "chosen_recently": 3, "mean_score": 0.7},
-            {"id": 0, "image": image[:4], "found_at": 0, "success_rate": None, "chosen_recently": 0, "mean_score": None},
-        ]
-    )
-    records = store.subgoals()
-    assert [r["id"] for r in records] == [0, 1]
-    assert records[1]["found_at"] == 500 and records[1]["success_rate"] == 0.25 and records[1]["mean_score"] == 0.7
-    assert records[0]["success_rate"] is None
-    np.testing.assert_array_equal(records[1]["image"], image)
-    np.testing.assert_array_equal(decode_png(store.subgoal_png(0)), image[:4])
-    store.put_subgoals([{"id": 5, "image": image}])
-    assert [r["id"] for r in store.subgoals(with_images=False)] == [5]
-    with pytest.raises(ValueError, match="appears twice"):
-        store.put_subgoals([{"id": 2, "image": image}, {"id": 2, "image": image}])
-    assert [r["id"] for r in store.subgoals(with_images=False)] == [5]  # unchanged after the error
-    with pytest.raises(KeyError):
-        store.subgoal_png(1)
-
-
 CHILD = textwrap.dedent(
     """
     import sys
@@ -266,7 +243,7 @@ def test_export_and_import_round_trip_without_duplicates(tmp_path):
     source.add_answer("q0", "FIRST", "alice", answered_at=1.0)
     source.add_answer("q2", "SECOND", "bob", answered_at=2.0)
     source.add_answer("q1", "EQUAL", "alice", answered_at=3.0)
-    source.put_subgoals([{"id": 0, "image": np.zeros((4, 4, 3), np.uint8)}])
+    SubgoalTable(source).put([{"id": 0, "image": np.zeros((4, 4, 3), np.uint8)}])
     dataset = tmp_path / "prefs_dataset.db"
     source.export(dataset)
     with pytest.raises(FileExistsError):
@@ -282,7 +259,7 @@ def test_export_and_import_round_trip_without_duplicates(tmp_path):
     ]
     np.testing.assert_array_equal(pairs[1][0].goal1_image, make_query(2).goal1_image)
     with PreferenceStore(dataset) as loaded:  # only answered queries travel, no open query, no sub-goal
-        assert loaded.open_query_ids() == [] and loaded.subgoals() == []
+        assert loaded.open_query_ids() == [] and SubgoalTable(loaded).records() == []
 
     target = PreferenceStore(tmp_path / "b.db")
     target.add_query(make_query(2))  # asked here and still open: receives the dataset's answer
@@ -353,7 +330,11 @@ def test_a_store_of_schema_version_1_is_migrated_and_keeps_its_answers(tmp_path)
     store.close()
     conn = sqlite3.connect(path)  # make it a file written by schema version 1
     conn.execute("ALTER TABLE answers DROP COLUMN response_s")
-    conn.execute("ALTER TABLE subgoals DROP COLUMN info")
+    conn.execute(  # version 1 kept the sub-goal gallery's table, without its info column
+        "CREATE TABLE subgoals (id INTEGER PRIMARY KEY, png BLOB NOT NULL, found_at INTEGER, success_rate REAL, "
+        "chosen_recently INTEGER NOT NULL DEFAULT 0, mean_score REAL)"
+    )
+    conn.execute("INSERT INTO subgoals (id, png, found_at) VALUES (3, ?, 70)", (encode_png(np.zeros((4, 4, 3), np.uint8)),))
     conn.execute("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
     conn.commit()
     conn.close()
@@ -362,6 +343,8 @@ def test_a_store_of_schema_version_1_is_migrated_and_keeps_its_answers(tmp_path)
     store.add_query(make_query(1))
     store.add_answer("q1", "SECOND", "bob", response_s=1.25)
     assert store.response_times("bob") == [1.25]
+    [record] = SubgoalTable(store).records(with_images=False)
+    assert (record["id"], record["found_at"], record["name"]) == (3, 70, None)
     store.close()
     conn = sqlite3.connect(path)
     assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == str(SCHEMA_VERSION)
@@ -376,7 +359,7 @@ def test_create_false_refuses_a_missing_file_and_writes_nothing(tmp_path):
     PreferenceStore(tmp_path / "new.db", create=False).close()
 
 
-def test_budget_distinct_questions_response_times_and_named_subgoals():
+def test_budget_distinct_questions_and_response_times():
     store = PreferenceStore()
     stats = store.stats()
     assert stats["budget"] is None and stats["distinct"] is None and stats["signed"] == 0
@@ -397,10 +380,3 @@ def test_budget_distinct_questions_response_times_and_named_subgoals():
     assert store.response_times("alice") == [2.0] and store.get_answer("q2") is None
     assert store.query_info("q0")["signature"] == "a" and store.query_goals("q0")[:2] == (0, 1)
 
-    image = np.zeros((4, 4, 3), np.uint8)
-    store.put_subgoals([{"id": 3, "image": image, "name": "carrying key, facing locked door"}, {"id": 4, "image": image}])
-    assert [r["name"] for r in store.subgoals(with_images=False)] == ["carrying key, facing locked door", None]
-    with pytest.raises(KeyError, match="ids are in"):
-        store.subgoal_png(10**22)
-    with pytest.raises(ValueError, match="Sub-goal id must be in"):
-        store.put_subgoals([{"id": -1, "image": image}])

@@ -54,7 +54,7 @@ class BetweenEpisodes:
         self.update_curiosity(trace)
         self._episodes_done = getattr(self, "_episodes_done", 0) + 1
         if self.preference_db is not None and self.subgoals and self._episodes_done % self.gallery_every == 0:
-            self.store.put_subgoals(self.subgoal_records())
+            self.subgoal_table.put(self.subgoal_records())
 
     # ------------------------------------------------------------------ preferences (lines 24-27)
     def ask_preferences(self: Any, trace: EpisodeTrace) -> None:

@@ -47,6 +47,7 @@ from sb3_hhp.preferences.predictor import PreferencePredictor
 from sb3_hhp.preferences.query import QuerySelector
 from sb3_hhp.preferences.rewards import PreferenceReturnNormalizer, meta_reward
 from sb3_hhp.preferences.store import PreferenceStore
+from sb3_hhp.subgoal_table import SubgoalTable
 
 SelfHhP = TypeVar("SelfHhP", bound="HhP")
 
@@ -447,6 +448,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         )
         self.store = PreferenceStore(self.preference_db or ":memory:", create=True)
         self.store.set_query_budget(self.query_budget)  # shown on the labeling page as "asked / budget"
+        self.subgoal_table = SubgoalTable(self.store)  # the labeling page's gallery, in the store's file
         self.oracle = self._make_oracle()
         if self.record_images is None:
             self.record_images = self.oracle_spec in ("web", "terminal") or self.preference_db is not None
@@ -866,7 +868,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         return [
             *super()._excluded_save_params(),
             "options", "subgoal_set", "_last_trace", "rnd", "predictor", "query_selector", "return_normalizer", "subpolicies", "discovery",
-            "store", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
+            "store", "subgoal_table", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
             "last_confidences", "consumed_query_ids", "initial_subgoals", "_asked_signatures", "_mask_cache", "_present_cache",
             "_bonus_key", "_bonus_cache", "_bonus_valid", "_unscored",
         ]

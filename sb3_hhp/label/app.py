@@ -44,8 +44,9 @@ from pydantic import BaseModel, Field
 
 from sb3_hhp.goals.base import GoalSpace
 from sb3_hhp.preferences.codecs import encode_png
-from sb3_hhp.preferences.store import IMAGE_KINDS, MAX_SUBGOAL_ID, AlreadyAnswered, PreferenceStore
+from sb3_hhp.preferences.store import IMAGE_KINDS, AlreadyAnswered, PreferenceStore
 from sb3_hhp.preferences.types import Label
+from sb3_hhp.subgoal_table import MAX_SUBGOAL_ID, SubgoalTable
 
 __all__ = ["IMAGE_NAMES", "LEASE_GRACE_S", "MAX_BODY_BYTES", "MAX_ID_LENGTH", "create_app"]
 
@@ -174,6 +175,7 @@ def create_app(store: PreferenceStore, token: Optional[str] = None, reply_window
         title="sb3_hhp labeling", docs_url=None, redoc_url=None, openapi_url=None, max_body_size=MAX_BODY_BYTES
     )
     app.state.store = store
+    subgoal_table = SubgoalTable(store)
     app.state.reply_window_s = reply_window_s
     api = APIRouter(prefix="/api", dependencies=[Depends(check_token)])
 
@@ -287,7 +289,7 @@ def create_app(store: PreferenceStore, token: Optional[str] = None, reply_window
 
     @api.get("/subgoals")
     def subgoals() -> dict:
-        records = store.subgoals(with_images=False)
+        records = subgoal_table.records(with_images=False)
         for record in records:
             record["image"] = f"/api/subgoal/{record['id']}.png"
         return {"subgoals": records, "time": time.time()}
@@ -295,7 +297,7 @@ def create_app(store: PreferenceStore, token: Optional[str] = None, reply_window
     @api.get("/subgoal/{subgoal_id}.png")
     def subgoal_image(subgoal_id: int = PathParam(ge=0, le=MAX_SUBGOAL_ID)) -> Response:
         try:
-            png = store.subgoal_png(subgoal_id)
+            png = subgoal_table.png(subgoal_id)
         except KeyError as error:
             raise HTTPException(status_code=404, detail=f"Unknown sub-goal id {subgoal_id}") from error
         return Response(content=png, media_type="image/png", headers=_NO_STORE)

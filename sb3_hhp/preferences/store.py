@@ -20,7 +20,7 @@ import sqlite3
 import threading
 import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from typing import Any, Optional, Union
 
 import numpy as np
@@ -37,8 +37,6 @@ STORE_FORMAT = "sb3_hhp.preferences"
 SCHEMA_VERSION = 2
 #: the images a query may carry, as named in the API
 IMAGE_KINDS = ("state", "goal1", "goal2")
-#: the largest sub-goal id SQLite can hold (a signed 64-bit integer)
-MAX_SUBGOAL_ID = 2**63 - 1
 
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 
@@ -70,21 +68,13 @@ CREATE TABLE IF NOT EXISTS answers (
     answered_at REAL NOT NULL,
     response_s REAL
 );
-CREATE TABLE IF NOT EXISTS subgoals (
-    id INTEGER PRIMARY KEY,
-    png BLOB NOT NULL,
-    found_at INTEGER,
-    success_rate REAL,
-    chosen_recently INTEGER NOT NULL DEFAULT 0,
-    mean_score REAL,
-    info TEXT NOT NULL DEFAULT '{}'
-);
 """
 
 #: schema migrations: the statements that bring a store of version ``v - 1`` to version ``v``
 _MIGRATIONS = {
     2: (
         "ALTER TABLE answers ADD COLUMN response_s REAL",
+        # version 1 files hold the sub-goal gallery's table (now sb3_hhp.subgoal_table's) in its first layout
         "ALTER TABLE subgoals ADD COLUMN info TEXT NOT NULL DEFAULT '{}'",
     ),
 }
@@ -96,15 +86,6 @@ _QUERY_COLUMNS = (
 
 class AlreadyAnswered(ValueError):
     """Raised when a query that already has an answer receives a second one."""
-
-
-def _optional_float(value: Any, name: str) -> Optional[float]:
-    if value is None:
-        return None
-    value = float(value)
-    if math.isnan(value):
-        return None
-    return value
 
 
 # --------------------------------------------------------------------------------------------
@@ -219,6 +200,17 @@ class PreferenceStore:
     def _read(self, sql: str, params: Sequence[Any] = ()) -> list[tuple]:
         with self._lock:
             return self._conn.execute(sql, params).fetchall()
+
+    # ---------------------------------------------------------------- tables kept beside the preference data
+
+    def transaction(self) -> AbstractContextManager[sqlite3.Connection]:
+        """One write transaction on the store's file, committed at once: for tables that share the file with
+        the preference data without being part of it (the sub-goal gallery, :mod:`sb3_hhp.subgoal_table`)."""
+        return self._transaction()
+
+    def read(self, sql: str, params: Sequence[Any] = ()) -> list[tuple]:
+        """The rows of one read-only statement on the store's file (see :meth:`transaction`)."""
+        return self._read(sql, params)
 
     # ---------------------------------------------------------------- queries
 
@@ -483,83 +475,12 @@ class PreferenceStore:
             raise KeyError(f"Unknown query id {query_id!r}")
         return [kind for kind, present in zip(IMAGE_KINDS, rows[0]) if present]
 
-    # ---------------------------------------------------------------- sub-goal gallery
-
-    def put_subgoals(self, records: Sequence[dict]) -> None:
-        """Replace the sub-goal gallery data as a whole (the trainer calls it once per rollout).
-
-        :param records: one dict per sub-goal: ``id`` (int), ``image`` (RGB uint8 array), ``found_at``
-            (env step it was found), ``success_rate`` (its subpolicy's, in [0, 1], or ``None``),
-            ``chosen_recently`` (how often the meta-controller chose it lately), ``mean_score``
-            (the preference predictor's mean score, or ``None``), ``name`` (what it is, in words, or ``None``)
-        """
-        rows = []
-        seen: set[int] = set()
-        for index, record in enumerate(records):
-            if "id" not in record or "image" not in record:
-                raise ValueError(f"Sub-goal record {index} needs at least 'id' and 'image', got keys {sorted(record)}")
-            subgoal_id = int(record["id"])
-            if not 0 <= subgoal_id <= MAX_SUBGOAL_ID:
-                raise ValueError(f"Sub-goal id must be in [0, {MAX_SUBGOAL_ID}], got {subgoal_id}")
-            if subgoal_id in seen:
-                raise ValueError(f"Sub-goal id {subgoal_id} appears twice in the records")
-            seen.add(subgoal_id)
-            found_at = record.get("found_at")
-            rows.append(
-                (
-                    subgoal_id,
-                    encode_png(record["image"], f"sub-goal {subgoal_id}'s image"),
-                    None if found_at is None else int(found_at),
-                    _optional_float(record.get("success_rate"), "success_rate"),
-                    int(record.get("chosen_recently") or 0),
-                    _optional_float(record.get("mean_score"), "mean_score"),
-                    encode_info({} if record.get("name") is None else {"name": str(record["name"])}),
-                )
-            )
-        with self._transaction() as conn:
-            conn.execute("DELETE FROM subgoals")
-            conn.executemany(
-                "INSERT INTO subgoals (id, png, found_at, success_rate, chosen_recently, mean_score, info) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                rows,
-            )
-
-    def subgoals(self, with_images: bool = True) -> list[dict]:
-        """The sub-goal gallery records as written by :meth:`put_subgoals`, ordered by id.
-
-        :param with_images: decode each ``image`` (RGB array); without, records have no ``image`` key
-        """
-        columns = "id, found_at, success_rate, chosen_recently, mean_score, info" + (", png" if with_images else "")
-        records = []
-        for row in self._read(f"SELECT {columns} FROM subgoals ORDER BY id"):
-            record = {
-                "id": int(row[0]),
-                "found_at": row[1],
-                "success_rate": row[2],
-                "chosen_recently": int(row[3]),
-                "mean_score": row[4],
-                "name": json.loads(row[5]).get("name"),
-            }
-            if with_images:
-                record["image"] = decode_png(bytes(row[6]))
-            records.append(record)
-        return records
-
-    def subgoal_png(self, subgoal_id: int) -> bytes:
-        """The PNG bytes of sub-goal ``subgoal_id``'s image (``KeyError`` when unknown, out of range included)."""
-        if not 0 <= int(subgoal_id) <= MAX_SUBGOAL_ID:
-            raise KeyError(f"Unknown sub-goal id {subgoal_id}: ids are in [0, {MAX_SUBGOAL_ID}]")
-        rows = self._read("SELECT png FROM subgoals WHERE id = ?", (int(subgoal_id),))
-        if not rows:
-            raise KeyError(f"Unknown sub-goal id {subgoal_id}")
-        return bytes(rows[0][0])
-
     # ---------------------------------------------------------------- datasets
 
     def export(self, path: Union[str, os.PathLike]) -> None:
         """Write the answered queries and their answers to a new preference dataset file.
 
-        The file is a preference store (SQLite, same schema) holding no open query and no sub-goal.
+        The file is a preference store (SQLite, same schema) holding no open query (and no sub-goal gallery).
 
         :param path: where to write; must not exist yet
         """
