@@ -5,7 +5,7 @@ a run on ``MiniGrid-Empty-Random-5x5-v0`` learns in about a minute on one CPU th
 """
 
 SMALL_SETTINGS = dict(
-    n_masks=20,  # MC-dropout masks of the confidence (paper: 500)
+    predictor_kwargs=dict(n_masks=20),  # MC-dropout masks of the confidence (paper: 500)
     learning_starts=200,  # meta-controller warm-up, in primitive steps
     max_subgoal_steps=30,  # a sub-goal gives up after this many primitive steps
     subpolicy_kwargs=dict(learning_starts=64),  # the sub-goal learners start updating after 64 stored steps
@@ -20,10 +20,15 @@ def main() -> None:
 
     from sb3_hhp import HhP
 
+    from sb3_hhp.hhp.hhp import PREDICTOR_DEFAULTS
+    from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS
+
     defaults = inspect.signature(HhP).parameters
+    grouped = {"predictor_kwargs": PREDICTOR_DEFAULTS, "subpolicy_kwargs": DEFAULT_SUBPOLICY_KWARGS}
     print(f"examples train on {SMALL_ENV} with:")
     for name, value in SMALL_SETTINGS.items():
-        print(f"  {name} = {value!r}  (class default {defaults[name].default!r})")
+        default = {key: grouped[name][key] for key in value} if name in grouped else defaults[name].default
+        print(f"  {name} = {value!r}  (class default {default!r})")
 
 
 if __name__ == "__main__":

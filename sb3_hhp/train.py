@@ -138,7 +138,8 @@ def hhp_arguments() -> list[str]:
     from sb3_hhp.hhp import HhP
 
     excluded = {"self", "policy", "env", "_init_setup_model", *COMMAND_LINE_KEYS}
-    return [name for name in inspect.signature(HhP.__init__).parameters if name not in excluded]
+    return [name for name, parameter in inspect.signature(HhP.__init__).parameters.items()
+            if name not in excluded and parameter.kind is not inspect.Parameter.VAR_KEYWORD]
 
 
 def validate_hyperparams(hyperparams: dict[str, Any], where: str) -> None:
@@ -147,12 +148,15 @@ def validate_hyperparams(hyperparams: dict[str, Any], where: str) -> None:
     :param hyperparams: one env's hyperparameters, after RL Zoo's overrides (``--hyperparams``)
     :param where: where they came from, for the messages
     """
+    from sb3_hhp.hhp.hhp import MOVED_ARGUMENTS, moved_argument_message
     from sb3_hhp.oracles.registry import ORACLE_NAMES
 
     valid = hhp_arguments()
     for key in hyperparams:
         if key in COMMAND_LINE_KEYS:
             raise ConfigError(f"{where}: {key!r} is set on the command line ({COMMAND_LINE_KEYS[key]}), not in the file")
+        if key in MOVED_ARGUMENTS:
+            raise ConfigError(f"{where}: {moved_argument_message(key)}")
         if key not in ZOO_KEYS and key not in valid:
             close = difflib.get_close_matches(str(key), [*valid, *ZOO_KEYS], n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
@@ -197,12 +201,15 @@ def sample_hhp_params(trial: Any, n_actions: int, n_envs: int, additional_args: 
     }
     if hyperparams["query_mode"] == "fixed":  # the adaptive mode sets its own threshold
         hyperparams["t_qry"] = trial.suggest_float("t_qry", 0.02, 0.5)
-    return hyperparams
+    return convert_hhp_params(hyperparams)
 
 
 def convert_hhp_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
-    """RL Zoo converter (``--storage ... --trial-id``): sampled values are HhP's arguments already."""
-    return dict(sampled_params)
+    """RL Zoo converter (``--storage ... --trial-id``): a trial's sampled values (named as the paper names them:
+    ``query_mode``, ``t_qry``) as HhP's arguments (``query_kwargs``)."""
+    from sb3_hhp.hhp.hhp import group_moved_arguments
+
+    return group_moved_arguments(sampled_params)
 
 
 def register() -> None:

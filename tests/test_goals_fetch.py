@@ -122,7 +122,8 @@ def test_image_draws_the_achieved_position_and_the_target_from_above_and_the_sid
 def test_hhp_trains_ddpg_subpolicies_on_fetch_reach_and_round_trips(tmp_path) -> None:
     th.set_num_threads(1)
     model = HhP(
-        "MlpPolicy", gym.make(REACH), oracle="scripted", query_budget=6, seed=0, learning_starts=100, n_masks=20,
+        "MlpPolicy", gym.make(REACH), oracle="scripted", query_budget=6, seed=0, learning_starts=100,
+        predictor_kwargs=dict(n_masks=20),
         subpolicy_kwargs=dict(learning_starts=64, batch_size=32, policy_kwargs=dict(net_arch=[32, 32])),
     )
     assert isinstance(model.goal_space, FetchGoalSpace)

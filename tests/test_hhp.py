@@ -2,6 +2,7 @@
 save/load, errors, the paper's ablations, resuming with a preference database, and a growing
 sub-goal set. Tiny settings throughout (5x5 MiniGrid, a few thousand primitive steps)."""
 
+import pathlib
 import zipfile
 from collections import Counter
 from typing import Any, Optional
@@ -19,7 +20,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecFrameStack, VecNorm
 
 from sb3_hhp import HhP
 from sb3_hhp.goals import MiniGridGoalSpace, wrap_env
-from sb3_hhp.hhp.hhp import COMPONENTS_FILE
+from sb3_hhp.hhp.hhp import COMPONENTS_FILE, MOVED_ARGUMENTS
 from sb3_hhp.hierarchy.options import EpisodeTrace
 from sb3_hhp.oracles import Label
 from sb3_hhp.preferences.store import PreferenceStore
@@ -28,26 +29,38 @@ from sb3_hhp.subgoal_table import SubgoalTable
 th.set_num_threads(1)
 
 DOORKEY = "MiniGrid-DoorKey-5x5-v0"
+DATA = pathlib.Path(__file__).parent / "data"
 EMPTY = "MiniGrid-Empty-5x5-v0"
 #: tiny networks and buffers
 TINY: dict[str, Any] = dict(
-    n_masks=20,
     buffer_size=2_000,
     learning_starts=300,
     batch_size=32,
     max_subgoal_steps=30,
     target_update_interval=50,
     policy_kwargs=dict(net_arch=[64]),
-    predictor_kwargs=dict(hidden_dim=64, batch_size=32),
+    predictor_kwargs=dict(hidden_dim=64, batch_size=32, n_masks=20),
     rnd_kwargs=dict(hidden_dim=64, refresh_interval=500),
     subpolicy_kwargs=dict(learning_starts=50, buffer_size=2_000, batch_size=32, policy_kwargs=dict(net_arch=[64, 64])),
-    subpolicy_exploration_steps=500,
+    subgoal_learner_kwargs=dict(exploration_steps=500),
 )
+#: the ``*_kwargs`` arguments that :func:`tiny` merges key by key
+GROUPED = ("query_kwargs", "predictor_kwargs", "subgoal_learner_kwargs")
+
+
+def tiny(**kwargs: Any) -> dict[str, Any]:
+    """:data:`TINY` updated with ``kwargs``; the grouped ``*_kwargs`` dicts are merged key by key."""
+    settings = {**TINY, **kwargs}
+    for group in GROUPED:
+        if group in kwargs:
+            settings[group] = {**TINY.get(group, {}), **kwargs[group]}
+    return settings
 
 
 def make_model(env_id: str = DOORKEY, **kwargs: Any) -> HhP:
-    settings = {**TINY, "seed": 0, "query_budget": 10, "query_mode": "fixed", "t_qry": 0.0, **kwargs}
-    return HhP("MlpPolicy", gym.make(env_id), **settings)
+    """A tiny model that asks about every tuple (fixed mode, t_qry = 0) within a budget of 10."""
+    query_kwargs = {"mode": "fixed", "threshold": 0.0, **kwargs.pop("query_kwargs", {})}
+    return HhP("MlpPolicy", gym.make(env_id), **tiny(**{"seed": 0, "query_budget": 10, **kwargs, "query_kwargs": query_kwargs}))
 
 
 def observations(env_id: str = DOORKEY, seeds: tuple[int, ...] = (0, 1, 2, 3, 4)) -> np.ndarray:
@@ -394,11 +407,12 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
         (dict(env=EMPTY, query_budget=-1), "query_budget must be an integer >= 0, got -1"),
         (dict(env=EMPTY, beta=1.5), r"beta must be in \[0, 1\], got 1.5"),
         (dict(env=EMPTY, beta=-0.1), r"beta must be in \[0, 1\], got -0.1"),
-        (dict(env=EMPTY, dropout=1.0), r"dropout must be in \[0, 1\), got 1.0"),
+        (dict(env=EMPTY, predictor_kwargs=dict(dropout=1.0)), r"dropout'\] must be in \[0, 1\), got 1.0"),
         (dict(env=EMPTY, center_bonus="median"), "center_bonus must be True / 'mean', 'max' or False, got 'median'"),
         (dict(env=EMPTY, discovery="none"), "subgoals="),
         (dict(env=EMPTY, discovery="everything"), "discovery must be"),
-        (dict(env=EMPTY, share_experience=False, train_shared=True), "needs share_experience=True"),
+        (dict(env=EMPTY, subgoal_learner_kwargs=dict(share_experience=False, train_shared=True)),
+         "needs share_experience=True"),
     ],
 )
 def test_bad_arguments_raise_clear_errors(kwargs: dict, match: str) -> None:
@@ -410,7 +424,7 @@ def test_env_forms(trained: HhP) -> None:
     """An env id, a gym env and a DummyVecEnv of one (wrapped) env are accepted; more envs are not."""
     one = DummyVecEnv([lambda: wrap_env(gym.make(EMPTY))])
     for env in (EMPTY, gym.make(EMPTY), one):
-        model = HhP("MlpPolicy", env, **{**TINY, "n_masks": 2})
+        model = HhP("MlpPolicy", env, **tiny(predictor_kwargs=dict(n_masks=2)))
         assert model.primitive_observation_space.shape == (9, 9, 3)
     for wrapper in (VecNormalize, lambda venv: VecFrameStack(venv, 4)):
         with pytest.raises(ValueError, match="cannot train under Vec.*Remove it"):
@@ -556,8 +570,8 @@ def test_train_shared_gives_every_subpolicy_its_gradient_steps(train_shared: boo
     """Without ``train_shared`` only the acting sub-goal counts a step as a learning tick; with it, every
     sub-goal does, and all due sub-goals update together at the train frequency."""
     kwargs = {**TINY.get("subpolicy_kwargs", {}), "train_freq": 2, "learning_starts": 1, "batch_size": 4}
-    model = make_model(EMPTY, use_curiosity=False, subpolicy_kwargs=kwargs, train_shared=train_shared,
-                       subgoal_learner="stacked")
+    model = make_model(EMPTY, use_curiosity=False, subpolicy_kwargs=kwargs, subgoal_learner="stacked",
+                       subgoal_learner_kwargs=dict(train_shared=train_shared))
     model.learn(600)
     learners = model.subpolicies
     assert len(model.subgoals) >= 2
@@ -647,7 +661,7 @@ def test_with_curiosity_intrinsic_rewards_are_not_all_zero() -> None:
 
 
 def test_random_discovery() -> None:
-    model = make_model(DOORKEY, discovery="random", csd_min_visits=1)
+    model = make_model(DOORKEY, discovery="random", discovery_kwargs=dict(min_visits=1))
     assert model.discovery.strategy == "random"
     model.learn(1_000)
     sources = Counter(goal.source for goal in model.subgoals)
@@ -827,6 +841,39 @@ def test_the_labeling_pages_gallery_is_written_into_the_preference_file(tmp_path
     assert len(gallery) == len(model.subgoals) >= 2  # no sub-goal is found between an episode's end and learn's
     assert [record["id"] for record in gallery] == list(range(len(model.subgoals)))
     assert [record["name"] for record in gallery] == [model.goal_space.describe(goal.key) for goal in model.subgoals]
+
+
+def test_a_model_saved_with_the_ungrouped_arguments_loads_as_it_was_trained(tmp_path) -> None:
+    """``tests/data/hhp_saved_with_ungrouped_arguments.zip`` was saved by commit 8f8c82c, the last before t_qry,
+    n_masks, b_similarity, ... were grouped into ``*_kwargs``: ``HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0"),
+    seed=0, t_qry=0.1, query_mode="fixed", n_masks=7, dropout=0.2, b_similarity=0.3, csd_min_visits=3,
+    max_subgoal_updates=5, subpolicy_exploration_steps=123, query_budget=5, ...)``, ``learn(300)``, ``save``."""
+    model = HhP.load(DATA / "hhp_saved_with_ungrouped_arguments.zip", env=gym.make("MiniGrid-Empty-5x5-v0"))
+    assert (model.query_selector.threshold, model.query_selector.mode) == (0.1, "fixed")
+    assert (model.predictor.n_masks, model.predictor.dropout) == (7, 0.2)
+    assert (model.discovery.similarity_threshold, model.discovery.min_visits, model.discovery.percentile) == (0.3, 3, 5.0)
+    assert (model.subpolicies.max_updates, model.subpolicies.exploration_steps) == (5, 123)
+    assert model.discovery_kwargs == dict(percentile=5.0, min_visits=3, similarity_threshold=0.3)
+    assert not any(hasattr(model, name) for name in MOVED_ARGUMENTS)  # grouped, not kept twice
+    model.learn(200, reset_num_timesteps=False)
+    model.save(tmp_path / "again")  # saved again, it loads with the same settings through the new arguments
+    again = HhP.load(tmp_path / "again")
+    assert (again.predictor.n_masks, again.subpolicies.max_updates, again.query_selector.threshold) == (7, 5, 0.1)
+
+
+def test_moved_and_misspelt_grouped_arguments_are_refused_with_their_place() -> None:
+    with pytest.raises(TypeError, match=r"'t_qry' is now a key of query_kwargs: write query_kwargs=dict\(threshold="):
+        HhP("MlpPolicy", gym.make(DOORKEY), t_qry=0.3)
+    with pytest.raises(TypeError, match="unexpected keyword arguments"):
+        HhP("MlpPolicy", gym.make(DOORKEY), not_an_argument=1)
+    with pytest.raises(ValueError, match="discovery_kwargs has no key 'b_similarity'; its keys are min_visits"):
+        HhP("MlpPolicy", gym.make(DOORKEY), discovery_kwargs=dict(b_similarity=0.2))
+    with pytest.raises(ValueError, match="predictor_kwargs has no key 'masks'"):
+        HhP("MlpPolicy", gym.make(DOORKEY), predictor_kwargs=dict(masks=3))
+    with pytest.raises(ValueError, match="needs share_experience=True"):
+        HhP("MlpPolicy", gym.make(DOORKEY), subgoal_learner_kwargs=dict(train_shared=True, share_experience=False))
+    with pytest.raises(ValueError, match=r"query_kwargs\['threshold'\] \(t_qry\) must be >= 0"):
+        HhP("MlpPolicy", gym.make(DOORKEY), query_kwargs=dict(threshold=-1))
 
 
 def test_resume_feeds_labels_answered_after_the_save(tmp_path) -> None:

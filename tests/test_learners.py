@@ -204,7 +204,7 @@ def test_a_round_updates_at_most_max_updates_subgoals_the_pursued_first_then_the
     restored = small_learners(max_updates=3)
     restored.load_state_dict(learners.state_dict())
     assert restored.last_round.tolist() == learners.last_round.tolist() and restored.rounds == learners.rounds
-    with pytest.raises(ValueError, match="max_subgoal_updates"):
+    with pytest.raises(ValueError, match="max_updates"):
         small_learners(max_updates=0)
 
 

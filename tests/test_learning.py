@@ -119,7 +119,7 @@ def train(seed: int) -> HhP:
         gym.make(ENV_ID),
         oracle="scripted",
         query_budget=20,
-        n_masks=20,
+        predictor_kwargs=dict(n_masks=20),
         learning_starts=200,
         max_subgoal_steps=30,
         subpolicy_kwargs=dict(learning_starts=64),

@@ -102,7 +102,7 @@ def test_short_run_writes_summary_and_rl_zoo_outputs(tmp_path: Path) -> None:
 def test_domain_entry_serves_ids_without_their_own(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     summary = train.run(
         ["--env", "MiniGrid-Empty-6x6-v0", "-n", "300", "--seed", "1", "--eval-episodes", "2", "--eval-freq", "-1",
-         "--num-threads", "1", "--verbose", "0", "-f", str(tmp_path), "--hyperparams", "n_masks:10"]
+         "--num-threads", "1", "--verbose", "0", "-f", str(tmp_path), "--hyperparams", "predictor_kwargs:dict(n_masks=10)"]
     )
     assert "MiniGrid-Empty-6x6-v0" not in yaml.safe_load((REPO / "hyperparams" / "hhp.yml").read_text())
     assert summary is not None and summary["env"] == "MiniGrid-Empty-6x6-v0"
@@ -118,7 +118,7 @@ def test_atari_ids_train_from_the_atari_entry_on_frames(tmp_path: Path) -> None:
     summary = train.run(
         ["--env", "ALE/Pong-v5", "--oracle", "none", "-n", "200", "--seed", "3", "--eval-episodes", "1", "--eval-freq",
          "-1", "--num-threads", "1", "--verbose", "0", "-f", str(tmp_path),
-         "--hyperparams", "n_masks:4", "buffer_size:2000", "max_subgoal_steps:50", "learning_starts:50"]
+         "--hyperparams", "predictor_kwargs:dict(n_masks=4)", "buffer_size:2000", "max_subgoal_steps:50", "learning_starts:50"]
     )
     assert summary is not None and summary["config_entry"] == "atari"
     assert summary["total_timesteps"] >= 200 and summary["num_subgoals"] >= 1
@@ -132,7 +132,7 @@ def test_fetch_ids_train_from_the_fetch_entry_with_the_scripted_oracle(tmp_path:
     scripted oracle answers from the positions; success is the env's own ``is_success``."""
     summary = train.run(
         ["--env", "FetchReach-v4", "--oracle", "scripted", "-n", "300", "--seed", "4", "--eval-episodes", "2",
-         "--eval-freq", "-1", "--num-threads", "1", "--verbose", "0", "-f", str(tmp_path), "--hyperparams", "n_masks:10"]
+         "--eval-freq", "-1", "--num-threads", "1", "--verbose", "0", "-f", str(tmp_path), "--hyperparams", "predictor_kwargs:dict(n_masks=10)"]
     )
     assert summary is not None and summary["config_entry"] == "fetch"
     assert summary["total_timesteps"] >= 300 and summary["num_subgoals"] >= 2
@@ -181,7 +181,7 @@ def test_unknown_yaml_key_is_refused_before_training(tmp_path: Path, capsys: pyt
     assert status == 2
     assert len(error.splitlines()) == 1
     assert "'query_budgt'" in error and "did you mean 'query_budget'" in error
-    assert "t_qry" in error and "n_timesteps" in error  # the valid keys are listed
+    assert "query_kwargs" in error and "n_timesteps" in error  # the valid keys are listed
     assert not list((tmp_path / "logs").rglob("*.zip"))  # nothing was trained
 
 
@@ -193,6 +193,8 @@ def test_unknown_yaml_key_is_refused_before_training(tmp_path: Path, capsys: pyt
         ({"frame_stack": 4}, "env_wrapper"),
         ({"seed": 3}, "--seed"),
         ({"oracle": "wizard"}, "unknown oracle 'wizard'"),
+        ({"t_qry": 0.3}, r"'t_qry' is now a key of query_kwargs: .*query_kwargs: \{threshold: ...\}"),
+        ({"max_subgoal_updates": 4}, r"subgoal_learner_kwargs: \{max_updates: ...\}"),
     ],
 )
 def test_validate_hyperparams_refuses(hyperparams: dict, message: str) -> None:
@@ -247,16 +249,16 @@ def test_hhp_is_registered_with_rl_zoo() -> None:
          "center_bonus": "max", "meta_input": "auto"}
     )
     sampled = HYPERPARAMS_SAMPLER["hhp"](fixed, 0, 1, {})
-    assert sampled == {"query_budget": 80, "query_mode": "fixed", "beta": 0.6, "alpha": 0.3, "learning_rate": 1e-3,
-                       "t_qry": 0.2, "center_bonus": "max", "meta_input": "auto"}
+    assert sampled == {"query_budget": 80, "query_kwargs": {"mode": "fixed", "threshold": 0.2}, "beta": 0.6, "alpha": 0.3,
+                       "learning_rate": 1e-3, "center_bonus": "max", "meta_input": "auto"}
     assert set(sampled) <= set(train.hhp_arguments())
-    assert HYPERPARAMS_CONVERTER["hhp"](sampled) == sampled
+    assert HYPERPARAMS_CONVERTER["hhp"](fixed.params) == sampled  # a stored trial's values, as HhP's arguments
     # the adaptive mode sets its own threshold: no t_qry is sampled
     study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
     for _ in range(10):
         params = train.sample_hhp_params(study.ask(), 0, 1, {})
         assert 25 <= params["query_budget"] <= 400 and 0.0 <= params["beta"] <= 1.0
-        assert ("t_qry" in params) == (params["query_mode"] == "fixed")
+        assert ("threshold" in params["query_kwargs"]) == (params["query_kwargs"]["mode"] == "fixed")
 
 
 @pytest.mark.parametrize("env_id", ["MiniGrid-DoorKey-16x16-v0", "MiniGrid-KeyCorridorS4R3-v0", "MiniGrid-ObstructedMaze-1Q-v1",
@@ -268,7 +270,7 @@ def test_the_papers_four_minigrid_tasks_have_entries_that_build(env_id: str) -> 
     table = yaml.safe_load(train.default_config_path().read_text())
     assert train.select_entry(table, env_id) == env_id and table[env_id]["n_timesteps"] == 2e6
     hyperparams = {key: value for key, value in table[env_id].items() if key not in train.ZOO_KEYS}
-    model = HhP("MlpPolicy", gym.make(env_id), **{**hyperparams, "oracle": None, "n_masks": 2})
+    model = HhP("MlpPolicy", gym.make(env_id), **{**hyperparams, "oracle": None, "predictor_kwargs": dict(n_masks=2)})
     if env_id.startswith("MiniGrid-ObstructedMaze"):
         assert model.goal_space.use_color  # two keys of different colours
     if env_id == "MiniGrid-MultiRoom-N12-S10-v0":

@@ -18,11 +18,12 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_hhp import HhP
 
+#: each reading: the query mode, and the predictor's head and spread
 READINGS = {
-    "fixed, linear head, std": dict(query_mode="fixed", predictor_head="linear", confidence_spread="std"),
-    "fixed, sigmoid head, std": dict(query_mode="fixed", predictor_head="sigmoid", confidence_spread="std"),
-    "fixed, sigmoid head, var (eq. 4 as written)": dict(query_mode="fixed", predictor_head="sigmoid", confidence_spread="var"),
-    "adaptive, linear head, std (default)": dict(query_mode="adaptive", predictor_head="linear", confidence_spread="std"),
+    "fixed, linear head, std": ("fixed", dict(head="linear", spread="std")),
+    "fixed, sigmoid head, std": ("fixed", dict(head="sigmoid", spread="std")),
+    "fixed, sigmoid head, var (eq. 4 as written)": ("fixed", dict(head="sigmoid", spread="var")),
+    "adaptive, linear head, std (default)": ("adaptive", dict(head="linear", spread="std")),
 }
 
 
@@ -55,9 +56,9 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(1)
     rows = []
-    for name, kwargs in READINGS.items():
-        model = HhP("MlpPolicy", gym.make(args.env), oracle="scripted", query_budget=args.budget, t_qry=args.t_qry,
-                    seed=args.seed, n_masks=100, **kwargs)
+    for name, (mode, predictor) in READINGS.items():
+        model = HhP("MlpPolicy", gym.make(args.env), oracle="scripted", query_budget=args.budget, seed=args.seed,
+                    query_kwargs=dict(mode=mode, threshold=args.t_qry), predictor_kwargs=dict(n_masks=100, **predictor))
         recorder = ConfidenceRecorder()
         model.learn(args.steps, callback=recorder)
         values = np.asarray(recorder.values) if recorder.values else np.zeros(1)

@@ -8,6 +8,7 @@ confident choices (lines 24-27), discover sub-goals (line 29) and update the cur
 35); then ``train`` runs N_opt meta-controller updates (lines 30-34) whose reward is eq. 3.
 """
 
+import inspect
 import io
 import pathlib
 import pickle
@@ -70,13 +71,101 @@ def _continuous_actions(env: Union[GymEnv, str]) -> bool:
     return isinstance(space, spaces.Box)
 
 
+#: ``query_kwargs``: the query selection (:class:`~sb3_hhp.preferences.query.QuerySelector`): the paper's t_qry
+#: (``threshold``, fixed mode), the pacing ``mode`` ("adaptive" or "fixed"), and the ``horizon`` in primitive steps
+#: over which the adaptive mode paces the budget (None: the ``total_timesteps`` of each ``learn`` call)
+QUERY_DEFAULTS: dict[str, Any] = dict(threshold=0.26, mode="adaptive", horizon=None, quantile_window=2_000)
+#: ``predictor_kwargs``: the preference predictor's (:class:`~sb3_hhp.preferences.predictor.PreferencePredictor`);
+#: MC-dropout masks and dropout probability of eq. 4, its head and spread (design decisions: the predictor head)
+PREDICTOR_DEFAULTS: dict[str, Any] = dict(hidden_dim=256, dropout=0.1, n_masks=500, head="linear", spread="std")
+#: every key ``predictor_kwargs`` may hold (HhP sets ``buffer_size``, ``device`` and ``seed`` unless given)
+PREDICTOR_KEYS = frozenset(inspect.signature(PreferencePredictor.__init__).parameters) - {"self", "observation_space"}
+#: ``discovery_kwargs``: CSD's (:class:`~sb3_hhp.discovery.csd.SubgoalDiscovery`): lowest percentile of novelty
+#: progress, visits a key needs, and the similarity gate b_similarity
+DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similarity_threshold=0.5)
+#: ``subgoal_learner_kwargs``: how the sub-goal learners learn, beside their SB3 arguments (``subpolicy_kwargs``):
+#: own steps over which a subpolicy's epsilon decays; whether every transition also trains the other sub-goals'
+#: learners, relabelled with their rewards; whether they take their gradient steps on every primitive step, not
+#: only while they act (None: True for discrete actions, False for DDPG sub-goals, a model each); most learners
+#: updated in one round (``subgoal_learner="stacked"``; None: all)
+SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(exploration_steps=5_000, share_experience=True, train_shared=None,
+                                                max_updates=8)
+#: constructor arguments of earlier versions and where they went: old name -> (``*_kwargs`` argument, key)
+MOVED_ARGUMENTS: dict[str, tuple[str, str]] = {
+    "t_qry": ("query_kwargs", "threshold"),
+    "query_mode": ("query_kwargs", "mode"),
+    "query_horizon": ("query_kwargs", "horizon"),
+    "n_masks": ("predictor_kwargs", "n_masks"),
+    "dropout": ("predictor_kwargs", "dropout"),
+    "predictor_head": ("predictor_kwargs", "head"),
+    "confidence_spread": ("predictor_kwargs", "spread"),
+    "csd_percentile": ("discovery_kwargs", "percentile"),
+    "csd_min_visits": ("discovery_kwargs", "min_visits"),
+    "b_similarity": ("discovery_kwargs", "similarity_threshold"),
+    "subpolicy_exploration_steps": ("subgoal_learner_kwargs", "exploration_steps"),
+    "share_experience": ("subgoal_learner_kwargs", "share_experience"),
+    "train_shared": ("subgoal_learner_kwargs", "train_shared"),
+    "max_subgoal_updates": ("subgoal_learner_kwargs", "max_updates"),
+}
+
+
+def moved_argument_message(name: str) -> str:
+    """What to write instead of ``name``, an argument of an earlier version that a ``*_kwargs`` dict now holds."""
+    group, key = MOVED_ARGUMENTS[name]
+    return f"{name!r} is now a key of {group}: write {group}=dict({key}=...) (in a YAML entry, {group}: {{{key}: ...}})"
+
+
+def group_moved_arguments(arguments: dict[str, Any]) -> dict[str, Any]:
+    """``arguments`` with every moved argument of an earlier version put under its ``*_kwargs`` key (for models
+    and optimisation trials written before the arguments were grouped); the other arguments as they are."""
+    grouped = {name: value for name, value in arguments.items() if name not in MOVED_ARGUMENTS}
+    for name, value in arguments.items():
+        if name in MOVED_ARGUMENTS:
+            group, key = MOVED_ARGUMENTS[name]
+            grouped[group] = {**(grouped.get(group) or {}), key: value}
+    return grouped
+
+
+def _refuse_moved(moved: dict[str, Any]) -> None:
+    for name in moved:
+        if name in MOVED_ARGUMENTS:
+            raise TypeError(f"HhP got an argument of an earlier version: {moved_argument_message(name)}")
+    if moved:
+        raise TypeError(f"HhP got unexpected keyword arguments {sorted(moved)}")
+
+
+def _grouped(name: str, given: Optional[dict[str, Any]], defaults: dict[str, Any],
+             keys: Optional[frozenset] = None) -> dict[str, Any]:
+    """``defaults`` updated with ``given``; a key outside ``keys`` (default: the defaults' keys) is refused."""
+    if given is not None and not isinstance(given, dict):
+        raise ValueError(f"{name} must be a dict, got {type(given).__name__}")
+    known = keys if keys is not None else frozenset(defaults)
+    unknown = sorted(set(given or {}) - known)
+    if unknown:
+        raise ValueError(f"{name} has no key {unknown[0]!r}; its keys are {', '.join(sorted(known))}")
+    return {**defaults, **(given or {})}
+
+
+def _check_grouped(query: dict[str, Any], predictor: dict[str, Any], learner: dict[str, Any]) -> None:
+    """The grouped values a later component would only refuse once the model is set up."""
+    if not (isinstance(query["threshold"], (int, float, np.number)) and query["threshold"] >= 0):
+        raise ValueError(f"query_kwargs['threshold'] (t_qry) must be >= 0, got {query['threshold']!r}")
+    if query["horizon"] is not None and query["horizon"] < 1:
+        raise ValueError(f"query_kwargs['horizon'] must be >= 1 primitive steps (or None), got {query['horizon']}")
+    if not 0.0 <= predictor["dropout"] < 1.0:
+        raise ValueError(f"predictor_kwargs['dropout'] must be in [0, 1), got {predictor['dropout']}")
+    if learner["train_shared"] and not learner["share_experience"]:
+        raise ValueError("subgoal_learner_kwargs: train_shared=True trains sub-goals on shared experience: it needs "
+                         "share_experience=True")
+
+
 #: the paper's settings (section 5.1) over the class defaults, which are those measured to learn MiniGrid here:
 #: the paper's sub-goal learner, an uncentred preference bonus, the meta-controller on observations, sub-goals
 #: learning only while they act, 200 questions
 PAPER_KWARGS: dict[str, Any] = dict(
     query_budget=200, center_bonus=False, meta_input="observation", predictor_input="observation",
-    subgoal_learner="stacked", train_shared=False, subpolicy_kwargs=PAPER_SUBPOLICY_KWARGS, max_subgoal_steps=50,
-    max_subgoal_updates=None,
+    subgoal_learner="stacked", subpolicy_kwargs=PAPER_SUBPOLICY_KWARGS, max_subgoal_steps=50,
+    subgoal_learner_kwargs=dict(train_shared=False, max_updates=None),
 )
 
 
@@ -125,10 +214,6 @@ class HhP(BetweenEpisodes, DoubleDQN):
     :param oracle: who answers preference queries: an :class:`~sb3_hhp.oracles.Oracle` or a name of
         :data:`~sb3_hhp.oracles.ORACLE_NAMES`
     :param query_budget: total number of questions over training (>= 0)
-    :param t_qry: confidence threshold above which a tuple is asked (fixed mode)
-    :param query_mode: "fixed" (t_qry) or "adaptive" (paces the budget over training, design decisions: adaptive threshold)
-    :param query_horizon: primitive steps over which the adaptive mode paces the budget (default: the
-        ``total_timesteps`` of each ``learn`` call; set it when training in several ``learn`` calls)
     :param beta: weight of the extrinsic return in eq. 3, in [0, 1]
     :param alpha: weight of the intrinsic reward in eq. 6 (>= 0)
     :param use_preferences: False gives the paper's "Cur" ablation (no queries, reward = R_e)
@@ -138,50 +223,54 @@ class HhP(BetweenEpisodes, DoubleDQN):
     :param goal_space: "auto", a registered name or a :class:`~sb3_hhp.goals.GoalSpace`
     :param max_subgoal_steps: primitive steps after which a sub-goal gives up (design decisions: max_subgoal_steps)
     :param subgoal_capacity: initial size of the meta-controller's head (it doubles when full)
-    :param b_similarity: CSD similarity gate in [0, 1]
-    :param csd_percentile: CSD's lowest percentile of novelty progress
-    :param csd_min_visits: visits a state's sub-goal key needs before it may become a sub-goal
-    :param n_masks: MC-dropout masks for the confidence (eq. 4)
-    :param dropout: dropout probability p of the predictor
-    :param predictor_head: "linear" or "sigmoid" (design decisions: the predictor head)
-    :param confidence_spread: "std" or "var" of the MC-dropout predictions (design decisions: the predictor head)
+    :param subgoal_learner: discrete actions: "stacked" (default: a network of its own per sub-goal, all updated in
+        one call; measured to learn DoorKey-8x8 faster; cost and memory grow with the number of sub-goals) or "heads"
+        (one network, a shared trunk and one head per sub-goal, one relabelled batch for all; the cost of a step
+        barely grows with the number of sub-goals); see the README's Design
+    :param center_bonus: centre the preference bonus over the sub-goals of each state: True or "mean" subtracts
+        their mean, "max" the best choosable one's score, so that no choice is paid (see the README's Design)
+    :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
+        calls choosable there (:meth:`~sb3_hhp.goals.GoalSpace.choosable`: not already achieved; on MiniGrid,
+        also a milestone); in acting, exploring and the TD target alike (see the README's Design)
     :param predictor_input: what the preference predictor reads: "observation", "features" (the goal space's
         compact description of a state, :meth:`~sb3_hhp.goals.GoalSpace.features`) or "auto" (features when the
         goal space has them; see the README's Design)
     :param meta_input: what the meta-controller reads: "observation" (default), "features" (the goal space's
         description, through :class:`~sb3_hhp.hhp.policies.GoalSpaceFeatures`) or "auto" (features when the goal
         space has them and ``policy_kwargs`` names no features extractor; see the README's Design)
-    :param predictor_kwargs: more arguments of :class:`~sb3_hhp.preferences.predictor.PreferencePredictor`
-    :param rnd_kwargs: arguments of :class:`~sb3_hhp.curiosity.rnd.RND` (memory_size M, refresh_interval T, ...)
+    :param preference_db: path of the SQLite preference store (None: in memory)
+    :param record_images: render states for people (default: only when the oracle is a person)
+    :param n_opt: meta-controller gradient steps after each episode (N_opt = 4)
+    :param query_kwargs: when to ask (keys and defaults: :data:`QUERY_DEFAULTS`): ``threshold`` (the paper's
+        t_qry, fixed mode), ``mode`` ("adaptive" paces the budget over training, design decisions: adaptive
+        threshold; "fixed" asks above ``threshold``), ``horizon`` (primitive steps over which the adaptive mode
+        paces the budget; default: the ``total_timesteps`` of each ``learn`` call; set it when training in several
+        ``learn`` calls)
+    :param predictor_kwargs: arguments of :class:`~sb3_hhp.preferences.predictor.PreferencePredictor` over
+        :data:`PREDICTOR_DEFAULTS`: ``n_masks`` (MC-dropout masks of eq. 4), ``dropout`` (its p), ``head`` and
+        ``spread`` (design decisions: the predictor head), ``hidden_dim``, ``learning_rate``, ...
+    :param discovery_kwargs: CSD's, over :data:`DISCOVERY_DEFAULTS`: ``similarity_threshold`` (the paper's
+        b_similarity, in [0, 1]), ``percentile`` (lowest percentile of novelty progress), ``min_visits`` (visits a
+        state's sub-goal key needs before it may become a sub-goal)
+    :param subgoal_learner_kwargs: how the sub-goal learners learn, over :data:`SUBGOAL_LEARNER_DEFAULTS`:
+        ``exploration_steps`` (own steps over which a subpolicy's epsilon decays), ``share_experience`` (every
+        transition also trains, off-policy, the other sub-goals' learners, relabelled with their rewards),
+        ``train_shared`` (every sub-goal takes its gradient steps on every primitive step, at its own ``train_freq``,
+        not only while it acts; the heads learner always does; None: True for discrete actions, False for DDPG
+        sub-goals, a model each, K times the updates), ``max_updates`` (``subgoal_learner="stacked"``: most learners
+        updated in one round, the sub-goals the envs pursue now first, then those that waited longest, so that the
+        cost of a step stops growing once more sub-goals have been found; None: every sub-goal at each of its
+        updates; see the README's Design)
     :param subpolicy_kwargs: arguments of the sub-goal learners, in SB3 DQN's names (discrete actions: over
         :data:`~sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWARGS`; ``PAPER_SUBPOLICY_KWARGS`` is the paper's learner;
         ``buffer_size`` is the shared replay's, in primitive transitions) or of each sub-goal's SB3 DDPG (continuous)
-    :param subpolicy_exploration_steps: own steps over which a subpolicy's epsilon decays
-    :param preference_db: path of the SQLite preference store (None: in memory)
+    :param rnd_kwargs: arguments of :class:`~sb3_hhp.curiosity.rnd.RND` (memory_size M, refresh_interval T, ...)
     :param oracle_kwargs: arguments of the oracle built from a name
-    :param n_opt: meta-controller gradient steps after each episode (N_opt = 4)
-    :param share_experience: every transition also trains (off-policy) the other sub-goals' learners, relabelled with
-        their rewards (False: each learns only from the steps where it acted)
-    :param train_shared: ``subgoal_learner="stacked"`` and DDPG sub-goals: every sub-goal takes its gradient steps on
-        every primitive step (at its own ``train_freq``), not only while it acts; the heads learner always does.
-        Default (None): True for discrete actions, False for DDPG sub-goals (a model each: K times the updates)
-    :param subgoal_learner: discrete actions: "stacked" (default: a network of its own per sub-goal, all updated in
-        one call; measured to learn DoorKey-8x8 faster; cost and memory grow with the number of sub-goals) or "heads"
-        (one network, a shared trunk and one head per sub-goal, one relabelled batch for all; the cost of a step
-        barely grows with the number of sub-goals); see the README's Design
-    :param max_subgoal_updates: ``subgoal_learner="stacked"``: most sub-goal learners updated in one learning round
-        (the sub-goals the envs pursue now first, then those that waited longest), so that the cost of a step stops
-        growing once more sub-goals have been found; None: every sub-goal at each of its updates (see the README's
-        Design)
-    :param center_bonus: centre the preference bonus over the sub-goals of each state: True or "mean" subtracts
-        their mean, "max" the best choosable one's score, so that no choice is paid (see the README's Design)
-    :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
-        calls choosable there (:meth:`~sb3_hhp.goals.GoalSpace.choosable`: not already achieved; on MiniGrid,
-        also a milestone); in acting, exploring and the TD target alike (see the README's Design)
-    :param record_images: render states for people (default: only when the oracle is a person)
 
     Other parameters are those of :class:`~sb3_hhp.dqn.DoubleDQN` (the meta-controller); the meta
-    replay buffer R_H holds ``buffer_size`` sub-goal choices, and ``target_update_interval`` counts them.
+    replay buffer R_H holds ``buffer_size`` sub-goal choices, and ``target_update_interval`` counts them. An argument
+    of an earlier version that a ``*_kwargs`` dict now holds (``t_qry``, ``n_masks``, ``b_similarity``, ...) is
+    refused with the key to use (:data:`MOVED_ARGUMENTS`); models saved with them load as they were.
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -196,9 +285,6 @@ class HhP(BetweenEpisodes, DoubleDQN):
         env: Union[GymEnv, str, None],
         oracle: Union[str, Oracle, None] = "scripted",
         query_budget: int = 100,
-        t_qry: float = 0.26,
-        query_mode: str = "adaptive",
-        query_horizon: Optional[int] = None,
         beta: float = 0.7,
         alpha: float = 0.5,
         use_preferences: bool = True,
@@ -208,29 +294,21 @@ class HhP(BetweenEpisodes, DoubleDQN):
         goal_space: Union[str, GoalSpace] = "auto",
         max_subgoal_steps: int = 50,
         subgoal_capacity: int = 16,
-        b_similarity: float = 0.5,
-        csd_percentile: float = 5.0,
-        csd_min_visits: int = 2,
-        n_masks: int = 500,
-        dropout: float = 0.1,
-        predictor_head: str = "linear",
-        confidence_spread: str = "std",
-        predictor_input: str = "auto",
-        meta_input: str = "auto",
-        predictor_kwargs: Optional[dict[str, Any]] = None,
-        rnd_kwargs: Optional[dict[str, Any]] = None,
-        subpolicy_kwargs: Optional[dict[str, Any]] = None,
-        subpolicy_exploration_steps: int = 5_000,
-        preference_db: Optional[str] = None,
-        oracle_kwargs: Optional[dict[str, Any]] = None,
-        n_opt: int = 4,
-        share_experience: bool = True,
-        train_shared: Optional[bool] = None,
         subgoal_learner: str = "stacked",
-        max_subgoal_updates: Optional[int] = 8,
         center_bonus: Union[bool, str] = "max",
         mask_subgoals: bool = True,
+        predictor_input: str = "auto",
+        meta_input: str = "auto",
+        preference_db: Optional[str] = None,
         record_images: Optional[bool] = None,
+        n_opt: int = 4,
+        query_kwargs: Optional[dict[str, Any]] = None,
+        predictor_kwargs: Optional[dict[str, Any]] = None,
+        discovery_kwargs: Optional[dict[str, Any]] = None,
+        subgoal_learner_kwargs: Optional[dict[str, Any]] = None,
+        subpolicy_kwargs: Optional[dict[str, Any]] = None,
+        rnd_kwargs: Optional[dict[str, Any]] = None,
+        oracle_kwargs: Optional[dict[str, Any]] = None,
         learning_rate: Union[float, Schedule] = 1e-3,
         buffer_size: int = 500_000,
         learning_starts: int = 1_000,
@@ -249,40 +327,39 @@ class HhP(BetweenEpisodes, DoubleDQN):
         seed: Optional[int] = None,
         device: Union[th.device, str] = "auto",
         _init_setup_model: bool = True,
+        **moved: Any,
     ) -> None:
+        _refuse_moved(moved)
         if not 0.0 <= beta <= 1.0:
             raise ValueError(f"beta must be in [0, 1], got {beta}")
         if alpha < 0:
             raise ValueError(f"alpha must be >= 0, got {alpha}")
         if isinstance(query_budget, bool) or not isinstance(query_budget, (int, np.integer)) or query_budget < 0:
             raise ValueError(f"query_budget must be an integer >= 0, got {query_budget!r}")
-        if t_qry < 0:
-            raise ValueError(f"t_qry must be >= 0, got {t_qry}")
         if discovery not in ("csd", "random", "none"):
             raise ValueError(f"discovery must be 'csd', 'random' or 'none', got {discovery!r}")
         if discovery == "none" and not subgoals:
             raise ValueError("discovery='none' needs sub-goals handed in with subgoals=[obs, ...]")
         if n_opt < 1:
             raise ValueError(f"n_opt must be >= 1, got {n_opt}")
-        if train_shared and not share_experience:
-            raise ValueError("train_shared=True trains subpolicies on shared experience: it needs share_experience=True")
-        if train_shared is None:  # discrete sub-goal learners train on every step; one DDPG model per sub-goal does not
-            train_shared = share_experience and (env is None or not _continuous_actions(env))
         if subgoal_learner not in SUBGOAL_LEARNERS:
             raise ValueError(f"subgoal_learner must be one of {sorted(SUBGOAL_LEARNERS)}, got {subgoal_learner!r}")
         if predictor_input not in ("auto", "features", "observation"):
             raise ValueError(f"predictor_input must be 'auto', 'features' or 'observation', got {predictor_input!r}")
         if meta_input not in ("auto", "features", "observation"):
             raise ValueError(f"meta_input must be 'auto', 'features' or 'observation', got {meta_input!r}")
-        if not 0.0 <= dropout < 1.0:
-            raise ValueError(f"dropout must be in [0, 1), got {dropout}")
+        if center_bonus not in (True, False, "mean", "max"):
+            raise ValueError(f"center_bonus must be True / 'mean', 'max' or False, got {center_bonus!r}")
+        self.query_kwargs = _grouped("query_kwargs", query_kwargs, QUERY_DEFAULTS)
+        self.predictor_kwargs = _grouped("predictor_kwargs", predictor_kwargs, PREDICTOR_DEFAULTS, PREDICTOR_KEYS)
+        self.discovery_kwargs = _grouped("discovery_kwargs", discovery_kwargs, DISCOVERY_DEFAULTS)
+        self.subgoal_learner_kwargs = _grouped("subgoal_learner_kwargs", subgoal_learner_kwargs, SUBGOAL_LEARNER_DEFAULTS)
+        _check_grouped(self.query_kwargs, self.predictor_kwargs, self.subgoal_learner_kwargs)
+        learner = self.subgoal_learner_kwargs
+        if learner["train_shared"] is None:  # discrete sub-goal learners train on every step; one DDPG model each does not
+            learner["train_shared"] = learner["share_experience"] and (env is None or not _continuous_actions(env))
         self.oracle_spec = oracle
         self.query_budget = int(query_budget)
-        self.t_qry = t_qry
-        self.query_mode = query_mode
-        if query_horizon is not None and query_horizon < 1:
-            raise ValueError(f"query_horizon must be >= 1 primitive steps (or None), got {query_horizon}")
-        self.query_horizon = query_horizon
         self.beta = beta
         self.alpha = alpha
         self.use_preferences = use_preferences
@@ -292,30 +369,16 @@ class HhP(BetweenEpisodes, DoubleDQN):
         self.goal_space_spec = goal_space
         self.max_subgoal_steps = max_subgoal_steps
         self.subgoal_capacity = subgoal_capacity
-        self.b_similarity = b_similarity
-        self.csd_percentile = csd_percentile
-        self.csd_min_visits = csd_min_visits
-        self.n_masks = n_masks
-        self.dropout = dropout
-        self.predictor_head = predictor_head
-        self.confidence_spread = confidence_spread
         self.predictor_input = predictor_input
         self.meta_input = meta_input
-        self.predictor_kwargs = dict(predictor_kwargs or {})
         self.rnd_kwargs = dict(rnd_kwargs or {})
         self.subpolicy_kwargs = dict(subpolicy_kwargs or {})
-        self.subpolicy_exploration_steps = subpolicy_exploration_steps
         self.preference_db = preference_db
         self.oracle_kwargs = dict(oracle_kwargs or {})
         self.n_opt = n_opt
-        if center_bonus not in (True, False, "mean", "max"):
-            raise ValueError(f"center_bonus must be True / 'mean', 'max' or False, got {center_bonus!r}")
         self.center_bonus = center_bonus
         self.mask_subgoals = mask_subgoals
-        self.share_experience = share_experience
-        self.train_shared = train_shared
         self.subgoal_learner = subgoal_learner
-        self.max_subgoal_updates = max_subgoal_updates
         self.record_images = record_images
         self.subpolicy_policy = policy if isinstance(policy, str) else "MlpPolicy"
 
@@ -403,7 +466,21 @@ class HhP(BetweenEpisodes, DoubleDQN):
             f"{space}: use HhP('MlpPolicy', env)"
         )
 
+    def _group_saved_arguments(self) -> None:
+        """A model saved before the arguments were grouped holds them as attributes (SB3's load sets every saved
+        attribute): put them under their ``*_kwargs`` dicts, over the defaults, as they were trained with."""
+        old = {name: self.__dict__.pop(name) for name in list(MOVED_ARGUMENTS) if name in self.__dict__}
+        if not old:
+            return
+        old.setdefault("max_subgoal_updates", None)  # saved before that argument existed: every learner updated
+        grouped = group_moved_arguments(old)
+        for group, defaults in (("query_kwargs", QUERY_DEFAULTS), ("predictor_kwargs", PREDICTOR_DEFAULTS),
+                                ("discovery_kwargs", DISCOVERY_DEFAULTS),
+                                ("subgoal_learner_kwargs", SUBGOAL_LEARNER_DEFAULTS)):
+            setattr(self, group, {**defaults, **(getattr(self, group, None) or {}), **grouped.get(group, {})})
+
     def _setup_model(self) -> None:
+        self._group_saved_arguments()
         # the replay R_H holds sub-goal choices, which end at different times in different envs: one stream
         n_envs, self.n_envs = self.n_envs, 1
         try:
@@ -413,10 +490,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         device = get_device(self.device)
         obs_space = self.primitive_observation_space
         self.rnd = RND(obs_space, device=device, seed=self.seed, **self.rnd_kwargs) if self.use_curiosity else None
-        predictor_kwargs = dict(
-            hidden_dim=256, dropout=self.dropout, n_masks=self.n_masks, head=self.predictor_head,
-            spread=self.confidence_spread, buffer_size=max(1, self.query_budget), device=device, seed=self.seed,
-        )
+        predictor_kwargs = dict(buffer_size=max(1, self.query_budget), device=device, seed=self.seed)
         predictor_kwargs.update(self.predictor_kwargs)
         self._predictor_reads_features = self._reads_features("predictor_input", self.predictor_input)
         predictor_space = (
@@ -424,27 +498,28 @@ class HhP(BetweenEpisodes, DoubleDQN):
             if self._predictor_reads_features else obs_space
         )
         self.predictor = PreferencePredictor(predictor_space, **predictor_kwargs)
-        self.query_selector = QuerySelector(self.query_budget, threshold=self.t_qry, mode=self.query_mode)
+        query = {key: value for key, value in self.query_kwargs.items() if key != "horizon"}
+        self.query_selector = QuerySelector(self.query_budget, **query)
         self.return_normalizer = PreferenceReturnNormalizer(gamma=0.99, rollout_length=64)
         alpha = self.alpha if self.use_curiosity else 0.0
+        learner = self.subgoal_learner_kwargs
         if isinstance(self.primitive_action_space, spaces.Discrete):
-            self.subpolicies = SUBGOAL_LEARNERS[getattr(self, "subgoal_learner", "stacked")](
+            self.subpolicies = SUBGOAL_LEARNERS[self.subgoal_learner](
                 obs_space, self.primitive_action_space, self.goal_space.achieved, policy=self.subpolicy_policy,
-                subpolicy_kwargs=self.subpolicy_kwargs, alpha=alpha, exploration_steps=self.subpolicy_exploration_steps,
-                share_experience=self.share_experience, train_shared=self.train_shared, n_envs=self.n_envs,
-                device=device, seed=self.seed, max_updates=getattr(self, "max_subgoal_updates", None),
+                subpolicy_kwargs=self.subpolicy_kwargs, alpha=alpha, n_envs=self.n_envs, device=device, seed=self.seed,
+                **learner,
             )
         else:
             self.subpolicies = PerGoalLearners(
                 SubpolicySet(obs_space, self.primitive_action_space, policy=self.subpolicy_policy,
-                             subpolicy_kwargs=self.subpolicy_kwargs, exploration_steps=self.subpolicy_exploration_steps,
+                             subpolicy_kwargs=self.subpolicy_kwargs, exploration_steps=learner["exploration_steps"],
                              device=device, seed=self.seed),
-                self.goal_space.achieved, alpha=alpha, share_experience=self.share_experience, train_shared=self.train_shared,
+                self.goal_space.achieved, alpha=alpha, share_experience=learner["share_experience"],
+                train_shared=learner["train_shared"],
             )
         self.discovery = SubgoalDiscovery(
-            self.goal_space, strategy="random" if self.discovery_strategy == "random" else "csd",
-            percentile=self.csd_percentile, min_visits=self.csd_min_visits,
-            similarity_threshold=self.b_similarity, seed=self.seed,
+            self.goal_space, strategy="random" if self.discovery_strategy == "random" else "csd", seed=self.seed,
+            **self.discovery_kwargs,
         )
         self.store = PreferenceStore(self.preference_db or ":memory:", create=True)
         self.store.set_query_budget(self.query_budget)  # shown on the labeling page as "asked / budget"
@@ -795,7 +870,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         if self.options is None:
             raise ValueError("This model has no env: pass one with HhP.load(path, env=env) or model.set_env(env)")
         horizon = total_timesteps + (0 if reset_num_timesteps else self.num_timesteps)
-        self.query_selector.set_total_timesteps(int(self.query_horizon or horizon))
+        self.query_selector.set_total_timesteps(int(self.query_kwargs["horizon"] or horizon))
         self.resume_preferences()
         return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
 

@@ -124,7 +124,7 @@ class StackedDQN:
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
         if max_updates is not None and (isinstance(max_updates, bool) or int(max_updates) != max_updates
                                         or max_updates < 1):
-            raise ValueError(f"max_subgoal_updates must be an integer >= 1 or None, got {max_updates!r}")
+            raise ValueError(f"max_updates (subgoal_learner_kwargs) must be an integer >= 1 or None, got {max_updates!r}")
         self.max_updates = None if max_updates is None else int(max_updates)
         self.rounds = 0  # learning rounds so far
         if exploration_steps < 1:
