@@ -5,7 +5,7 @@ import gymnasium as gym
 import minigrid  # noqa: F401  (registers the MiniGrid envs)
 import numpy as np
 import pytest
-from minigrid.core.constants import COLORS, DIR_TO_VEC, OBJECT_TO_IDX, STATE_TO_IDX
+from minigrid.core.constants import COLOR_TO_IDX, COLORS, DIR_TO_VEC, OBJECT_TO_IDX, STATE_TO_IDX
 from minigrid.core.world_object import Ball, Key
 
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
@@ -456,3 +456,109 @@ def test_plans_open_boxes_for_what_they_hold_and_stop_at_their_time_limit() -> N
     assert time.perf_counter() - began < 0.6
     with pytest.raises(ValueError, match="max_seconds"):
         MiniGridScriptedOracle(max_seconds=0)
+
+
+def _random_walk_states(env_id: str, seed: int, n_states: int, every: int, use_color: bool = False) -> list[dict]:
+    env = wrap_env(gym.make(env_id))
+    env.reset(seed=seed)
+    goal_space, rng, states = MiniGridGoalSpace(use_color=use_color), np.random.default_rng(seed), []
+    for step in range(n_states * every):
+        if step % every == 0:
+            states.append(goal_space.privileged(env))
+        _, _, terminated, truncated, _ = env.step(int(rng.integers(env.action_space.n)))
+        if terminated or truncated:
+            break
+    env.close()
+    return states
+
+
+@pytest.mark.parametrize("env_id, seed", [("MiniGrid-DoorKey-6x6-v0", 0), ("MiniGrid-DoorKey-6x6-v0", 1),
+                                          ("MiniGrid-ObstructedMaze-1Dl-v0", 0), ("MiniGrid-KeyCorridorS3R1-v0", 2)])
+def test_the_search_heuristic_keeps_plans_shortest(env_id: str, seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The A* heuristic (moves through the cells the agent could ever stand on, a turn when the cell ahead is not
+    nearer, a drop when the hands are full) never overestimates: plans are as short as a search without it (the
+    distances all 0: breadth-first in effect). The weighted search's plans are valid and at most ``weight`` times
+    as long."""
+    from sb3_hhp.oracles import scripted
+
+    goal_space = MiniGridGoalSpace(use_color=True)
+    states = _random_walk_states(env_id, seed, n_states=4, every=7, use_color=True)
+    guided = [plan_keys(state, goal_space) for state in states]
+    weighted = [plan_keys(state, goal_space, weight=3.0) for state in states]
+    monkeypatch.setattr(scripted, "_distances", lambda cells, ends: [[0] * len(cells[0]) for _ in cells])
+    blind = [plan_keys(state, goal_space, max_nodes=2_000_000) for state in states]
+    assert all(keys is not None for keys in guided + blind + weighted)
+    assert [len(keys) for keys in guided] == [len(keys) for keys in blind]
+    assert all(keys[-1] == SUCCESS_KEY and len(guided_keys) <= len(keys) <= 3 * len(guided_keys)
+               for keys, guided_keys in zip(weighted, guided))
+    with pytest.raises(ValueError, match="weight must be >= 1"):
+        plan_keys(states[0], goal_space, weight=0.5)
+
+
+def test_the_heuristic_counts_moves_around_walls() -> None:
+    """Forward moves to the nearest end over every cell but walls and lava: doors and objects are passable."""
+    from sb3_hhp.oracles.scripted import _distances
+
+    wall, empty, door, ball = (OBJECT_TO_IDX[name] + 0 for name in ("wall", "empty", "door", "ball"))
+    rows = ["#####",
+            "#..E#",
+            "#D###",
+            "#.b.#",
+            "#####"]
+    codes = {"#": (wall, 0, 0), ".": (empty, 0, 0), "E": (empty, 0, 0), "D": (door, 0, 2), "b": (ball, 0, 0)}
+    cells = [[codes[rows[y][x]] for y in range(5)] for x in range(5)]  # cells[x][y], as MiniGrid's grids
+    distance = _distances(cells, [(3, 1)])
+    assert distance[3][1] == 0 and distance[1][1] == 2
+    assert distance[1][2] == 3 and distance[1][3] == 4  # through the (locked) door
+    assert distance[3][3] == 6  # past the ball, which may be carried away; not through the walls (2 straight)
+
+
+def test_the_oracle_falls_back_to_a_weighted_search(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A quarter of the time for a shortest plan; when none comes, the rest for one at most ``fallback_weight``
+    times as long; "can't tell" when neither finds one."""
+    from sb3_hhp.oracles import scripted
+
+    env = wrap_env(gym.make("MiniGrid-DoorKey-5x5-v0"))
+    env.reset(seed=0)
+    state = MiniGridGoalSpace().privileged(env)
+    calls = []
+
+    def plan(info, goal_space, max_seconds=None, weight=1.0, **kwargs):
+        calls.append((weight, max_seconds))
+        return None if weight == 1.0 else [SUCCESS_KEY]
+
+    oracle = MiniGridScriptedOracle(max_seconds=2.0, fallback_weight=3.0)
+    monkeypatch.setattr(scripted, "plan_keys", plan)
+    assert oracle.plan(state) == [SUCCESS_KEY] and oracle.last_plan_weight == 3.0
+    assert calls == [(1.0, 0.5), (3.0, 1.5)]
+    monkeypatch.setattr(scripted, "plan_keys", lambda *args, **kwargs: None)
+    assert oracle.answer(_query(state, FACING_KEY, FACING_LOCKED_DOOR)) == Label.INCOMPARABLE
+    monkeypatch.undo()
+    assert oracle.plan(state) is not None and oracle.last_plan_weight == 1.0
+    with pytest.raises(ValueError, match="fallback_weight"):
+        MiniGridScriptedOracle(fallback_weight=0.5)
+    env.close()
+
+
+def test_a_carried_box_keeps_what_it_holds() -> None:
+    """ObstructedMaze with the box that holds the door's key in the agent's hands (as a random walk leaves it):
+    the plan drops the box, opens it and takes the key; without knowing what the carried box holds, no plan."""
+    env = gym.make("MiniGrid-ObstructedMaze-1Q-v1")
+    env.reset(seed=0)
+    base = env.unwrapped
+    locked = [obj for obj in base.grid.grid if obj is not None and obj.type == "door" and obj.is_locked]
+    [(bx, by)] = [(x, y) for x in range(base.width) for y in range(base.height)
+                  if base.grid.get(x, y) is not None and base.grid.get(x, y).type == "box"
+                  and base.grid.get(x, y).contains.color == locked[0].color]
+    base.carrying = base.grid.get(bx, by)
+    base.grid.set(bx, by, None)
+    goal_space = MiniGridGoalSpace()
+    facts = goal_space.privileged(env)
+    assert facts["carrying_holds"][:2] == [KEY, COLOR_TO_IDX[locked[0].color]]
+    keys = plan_keys(facts, goal_space)
+    box = OBJECT_TO_IDX["box"]
+    assert keys is not None and keys[-1] == SUCCESS_KEY
+    assert keys.index((EMPTY, box, 0)) < keys.index((EMPTY, KEY, 0))  # put down, then opened
+    assert keys.index((EMPTY, KEY, 0)) < keys.index((KEY, OBJECT_TO_IDX["door"], STATE_TO_IDX["locked"]))
+    assert plan_keys({**facts, "carrying_holds": None}, goal_space, max_seconds=0.2) is None
+    env.close()

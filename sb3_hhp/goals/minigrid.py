@@ -276,6 +276,9 @@ class MiniGridGoalSpace(GoalSpace):
             "boxes": [[x, y, list(obj.contains.encode()) if obj.contains is not None else None]
                       for x, y, obj in ((i % base.width, i // base.width, obj) for i, obj in enumerate(base.grid.grid))
                       if isinstance(obj, Box)],
+            # and what the carried box holds (a box keeps its contents while carried)
+            "carrying_holds": (list(base.carrying.contains.encode())
+                               if isinstance(base.carrying, Box) and base.carrying.contains is not None else None),
         }
 
     def render(self, env: gym.Env) -> Optional[np.ndarray]:

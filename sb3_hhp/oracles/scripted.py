@@ -4,7 +4,8 @@ For any MiniGrid task with keys, doors, boxes and goals (DoorKey of any size, Un
 ObstructedMaze, ...) the oracle searches a shortest action sequence from the query's state to success
 (stepping on the goal square, or picking up the mission's object), by A* over MiniGrid's own rules (turn,
 forward, pick up, drop, toggle a door, with a key of its colour when locked, or a box, which leaves what it
-holds), bounded in time per question. Along that optimal plan it
+holds), bounded in time per question (a plan at most a few times as long is taken when the shortest is not found
+in a quarter of that time). Along that plan it
 lists the sub-goal keys the agent passes. A sub-goal is better the sooner it comes *as a milestone*
 of the plan (facing a key, a door, a ball, a box or the goal, a change of what is carried, the task
 solved): the next step a person would name. Sub-goals that are on the plan only in passing ("facing
@@ -33,7 +34,7 @@ _NO_OBJECT = (EMPTY, 0, 0)
 
 def plan_keys(
     info: dict[str, Any], goal_space: Optional[MiniGridGoalSpace] = None, max_nodes: int = 300_000,
-    max_seconds: Optional[float] = None,
+    max_seconds: Optional[float] = None, weight: float = 1.0, move_boxes: bool = False,
 ) -> Optional[list[Hashable]]:
     """Sub-goal keys after each action of a shortest plan from the state described by ``info``
     (as written by :meth:`MiniGridGoalSpace.privileged`) to success; the last key is ``SUCCESS_KEY``.
@@ -41,21 +42,29 @@ def plan_keys(
     The search follows MiniGrid's rules: turn, forward onto empty, floor, goal or open-door cells, pick up a
     key, ball or box, drop onto an empty cell, open a closed door, unlock a locked door with a key of its colour,
     and open a box, which leaves what it holds in its place (``info["boxes"]``: the contents of each box where
-    it lies; a box that was moved opens empty). A search state is the agent's cell, direction and load and the
+    it lies, ``info["carrying_holds"]``: those of the carried box; a box keeps them when carried). A search state is the agent's cell, direction and load and the
     cells changed from the start, so a move copies nothing.
 
     :param max_nodes: most search states visited
     :param max_seconds: most seconds spent searching (None: no limit)
+    :param move_boxes: also search plans that carry a box that is not the task's object somewhere else (a box is
+        opened where it lies otherwise: moving one pays only where it blocks the way, and multiplies the states to
+        search by the cells it could be left on)
+    :param weight: the heuristic's weight (weighted A*): 1 finds a shortest plan; w > 1 finds one at most w times as
+        long as the shortest, usually far sooner
     :return: the keys, ``[]`` when the state is already a success, ``None`` when no plan was found within the limits
     """
     goal_space = goal_space or MiniGridGoalSpace()
     grid0 = np.asarray(info["grid"], dtype=np.uint8)
     width, height = grid0.shape[:2]
     cells = [[tuple(int(v) for v in grid0[x, y]) for y in range(height)] for x in range(width)]
-    carrying0 = tuple(info["carrying"]) if info.get("carrying") is not None else _NO_OBJECT
+    # a box's code carries what it holds after its own three numbers, so that its contents travel with it
+    for x, y, held in info.get("boxes", []):
+        cells[int(x)][int(y)] += _held(held)
+    carrying0 = tuple(int(v) for v in info["carrying"]) if info.get("carrying") is not None else _NO_OBJECT
+    if carrying0[0] == _BOX:
+        carrying0 += _held(info.get("carrying_holds"))
     target = tuple(info["target"]) if info.get("target") is not None else None
-    contents = {(int(x), int(y)): (tuple(int(v) for v in held) if held is not None else _NO_OBJECT)
-                for x, y, held in info.get("boxes", [])}
     deadline = None if max_seconds is None else time.perf_counter() + max_seconds
 
     def cell(x: int, y: int, changes: tuple) -> tuple:
@@ -77,56 +86,68 @@ def plan_keys(
             return (int(carried[0]), int(carried[1]), int(front[0]), int(front[1]), int(front[2]))
         return (int(carried[0]), int(front[0]), int(front[2]))
 
-    # A*: a forward move changes the distance to the nearest cell that ends the task by at most one, so that
-    # distance never overestimates what is left and the first plan found is a shortest one
+    # A*: the heuristic counts the forward moves from the agent's cell to the nearest cell that ends the task,
+    # through every cell the agent could ever stand on (anything but walls and lava: doors may open, objects may be
+    # moved), plus a turn when the cell in front is not one move nearer, plus a drop when the task is to pick up an
+    # object and the hands are full. Each is owed by any plan, so it never overestimates what is left and the first
+    # plan found is a shortest one; unlike the straight-line distance it knows that rooms are entered by their doors.
     ends = [(cx, cy) for cx in range(width) for cy in range(height)
             if (cells[cx][cy][0] == _GOAL and target is None) or (target is not None and cells[cx][cy][:2] == target)]
+    distance = _distances(cells, ends)
 
-    def remaining(x: int, y: int) -> int:
-        return min((abs(x - cx) + abs(y - cy) for cx, cy in ends), default=0)
+    def remaining(state: tuple) -> int:
+        x, y, d, carried, _ = state
+        left = distance[x][y]
+        if left > 0:
+            fx, fy = x + int(DIR_TO_VEC[d][0]), y + int(DIR_TO_VEC[d][1])
+            ahead = distance[fx][fy] if 0 <= fx < width and 0 <= fy < height else left
+            left += ahead != left - 1
+        return left + (target is not None and carried != _NO_OBJECT)
 
+    if not weight >= 1.0:
+        raise ValueError(f"weight must be >= 1, got {weight}")
     start = (int(info["agent_pos"][0]), int(info["agent_pos"][1]), int(info["agent_dir"]), carrying0, ())
-    parents: dict[tuple, Optional[tuple]] = {start: None}
-    depth = {start: 0}
-    queue = [(remaining(start[0], start[1]), 0, 0, start)]  # (steps + remaining, -steps, order, state)
+    reached: dict[tuple, tuple[int, Optional[tuple]]] = {start: (0, None)}  # state -> (steps, the state before)
+    queue = [(weight * remaining(start), 0, 0, start)]  # (steps + weight * remaining, -steps, order, state)
     order = popped = 0
     goal_state = None
-    while queue and len(parents) < max_nodes:
+    while queue and len(reached) < max_nodes:
         popped += 1
         if deadline is not None and popped % 256 == 0 and time.perf_counter() > deadline:
             break
         _, negative_steps, _, state = heapq.heappop(queue)
-        if -negative_steps > depth[state]:
+        if -negative_steps > reached[state][0]:
             continue  # reached again by a shorter way since this entry was queued
         x, y, d, carried, changes = state
-        steps = depth[state] + 1
+        steps = 1 - negative_steps
         dx, dy = DIR_TO_VEC[d]
         fx, fy = x + dx, y + dy
         front = cell(fx, fy, changes)
-        successors = [(x, y, (d - 1) % 4, carried, changes, False), (x, y, (d + 1) % 4, carried, changes, False)]
-        if front[0] in _WALKABLE or (front[0] == _DOOR and front[2] == _OPEN):
-            successors.append((fx, fy, d, carried, changes, front[0] == _GOAL and target is None))
-        if carried == _NO_OBJECT and front[0] in _PICKABLE:
-            done = target is not None and front[:2] == target
-            successors.append((x, y, d, front, changed(changes, fx, fy, _NO_OBJECT), done))
-        if carried != _NO_OBJECT and front[0] == EMPTY:
-            successors.append((x, y, d, _NO_OBJECT, changed(changes, fx, fy, carried), False))
-        if front[0] == _DOOR and (front[2] == _CLOSED or (front[2] == _LOCKED and carried[:2] == (_KEY, front[1]))):
-            successors.append((x, y, d, carried, changed(changes, fx, fy, (_DOOR, front[1], _OPEN)), False))
-        if front[0] == _BOX:  # opened where it lay at the start: what it held; moved: nothing
-            held = contents.get((fx, fy), _NO_OBJECT) if front == cells[fx][fy] else _NO_OBJECT
-            successors.append((x, y, d, carried, changed(changes, fx, fy, held), False))
-        for *child, done in successors:
-            child = tuple(child)
+        kind = front[0]
+        done = target is not None and front[:2] == target
+        successors = [((x, y, (d - 1) % 4, carried, changes), False), ((x, y, (d + 1) % 4, carried, changes), False)]
+        if kind in _WALKABLE or (kind == _DOOR and front[2] == _OPEN):
+            successors.append(((fx, fy, d, carried, changes), kind == _GOAL and target is None))
+        # a box is opened where it lies, and carried only when it is what the task asks for (or with move_boxes)
+        if carried == _NO_OBJECT and kind in _PICKABLE and (kind != _BOX or done or move_boxes):
+            successors.append(((x, y, d, front, changed(changes, fx, fy, _NO_OBJECT)), done))
+        if carried != _NO_OBJECT and kind == EMPTY:
+            successors.append(((x, y, d, _NO_OBJECT, changed(changes, fx, fy, carried)), False))
+        if kind == _DOOR and (front[2] == _CLOSED or (front[2] == _LOCKED and carried[:2] == (_KEY, front[1]))):
+            successors.append(((x, y, d, carried, changed(changes, fx, fy, (_DOOR, front[1], _OPEN))), False))
+        if kind == _BOX:  # opened, it leaves what it holds in its place
+            successors.append(((x, y, d, carried, changed(changes, fx, fy, front[3:] or _NO_OBJECT)), False))
+        for child, done in successors:
             if done:
-                parents[child] = state
+                reached[child] = (steps, state)
                 goal_state = child
                 break
-            if child in parents and depth[child] <= steps:
+            known = reached.get(child)
+            if known is not None and known[0] <= steps:
                 continue
-            parents[child], depth[child] = state, steps
+            reached[child] = (steps, state)
             order += 1
-            heapq.heappush(queue, (steps + remaining(child[0], child[1]), -steps, order, child))
+            heapq.heappush(queue, (steps + weight * remaining(child), -steps, order, child))
         if goal_state is not None:
             break
     if goal_state is None:
@@ -135,11 +156,37 @@ def plan_keys(
     node: Optional[tuple] = goal_state
     while node is not None:
         path.append(node)
-        node = parents[node]
+        node = reached[node][1]
     path.reverse()
     keys: list[Hashable] = [key_of(*node) for node in path[1:-1]]
     keys.append(SUCCESS_KEY)
     return keys
+
+
+def _held(held: Optional[Any]) -> tuple:
+    """The code a box's code is extended by: what it holds (nothing: the empty cell's code)."""
+    return tuple(int(v) for v in held) if held is not None else _NO_OBJECT
+
+
+def _distances(cells: list[list[tuple]], ends: list[tuple[int, int]]) -> list[list[int]]:
+    """Forward moves from every cell to the nearest of ``ends`` over the cells that are not walls or lava
+    (breadth-first from the ends); 0 where no end can be reached (the search then finds no plan by itself)."""
+    width, height = len(cells), len(cells[0])
+    blocked = {OBJECT_TO_IDX["wall"], OBJECT_TO_IDX["lava"]}
+    distance = [[-1] * height for _ in range(width)]
+    frontier = list(ends)
+    for x, y in frontier:
+        distance[x][y] = 0
+    while frontier:
+        reached = []
+        for x, y in frontier:
+            for dx, dy in DIR_TO_VEC:
+                nx, ny = x + int(dx), y + int(dy)
+                if 0 <= nx < width and 0 <= ny < height and distance[nx][ny] < 0 and cells[nx][ny][0] not in blocked:
+                    distance[nx][ny] = distance[x][y] + 1
+                    reached.append((nx, ny))
+        frontier = reached
+    return [[max(value, 0) for value in column] for column in distance]
 
 
 def _as_key(value: Any) -> Hashable:
@@ -155,16 +202,35 @@ class MiniGridScriptedOracle(Oracle):
 
     :param use_color: must match the goal space's ``use_color``
     :param name: the annotator name recorded with its answers
-    :param max_seconds: most seconds the plan of one question may take (answers run on the training thread); a
-        question with no plan found within it is answered INCOMPARABLE
+    :param max_seconds: most seconds the plan of one question may take (answers run on the training thread): the
+        first quarter searches a shortest plan; when none is found by then, the rest searches one at most
+        ``fallback_weight`` times as long (weighted A*); a question with no plan found within it is answered
+        INCOMPARABLE
+    :param fallback_weight: the heuristic's weight of the second search (>= 1)
     """
 
-    def __init__(self, use_color: bool = False, name: str = "scripted", max_seconds: float = 1.0) -> None:
+    def __init__(self, use_color: bool = False, name: str = "scripted", max_seconds: float = 2.0,
+                 fallback_weight: float = 3.0) -> None:
         super().__init__(name)
         if not max_seconds > 0:
             raise ValueError(f"max_seconds must be > 0, got {max_seconds}")
+        if not fallback_weight >= 1:
+            raise ValueError(f"fallback_weight must be >= 1, got {fallback_weight}")
         self.goal_space = MiniGridGoalSpace(use_color=use_color)
         self.max_seconds = float(max_seconds)
+        self.fallback_weight = float(fallback_weight)
+
+    def plan(self, state: dict[str, Any]) -> Optional[list[Hashable]]:
+        """The sub-goal keys along a plan from ``state`` (:func:`plan_keys`) within ``max_seconds``: a shortest one,
+        else one at most ``fallback_weight`` times as long, else None."""
+        self.last_plan_weight: Optional[float] = None  # which search found the last plan (1: a shortest one)
+        searches = ((1.0, 0.25), (self.fallback_weight, 0.75)) if self.fallback_weight > 1 else ((1.0, 1.0),)
+        for weight, share in searches:
+            keys = plan_keys(state, self.goal_space, max_seconds=share * self.max_seconds, weight=weight)
+            if keys is not None:
+                self.last_plan_weight = weight
+                return keys
+        return None
 
     def rank(self, keys: Optional[list[Hashable]], goal_key: Hashable, carried_before: int) -> float:
         """Position of ``goal_key`` on the plan: milestones first, keys seen only in passing next, off-plan last."""
@@ -181,7 +247,7 @@ class MiniGridScriptedOracle(Oracle):
         if missing:
             raise ValueError(f"The scripted MiniGrid oracle needs {missing} in Query.info (use a MiniGrid goal space)")
         state = query.info["state"]
-        keys = plan_keys(state, self.goal_space, max_seconds=self.max_seconds)
+        keys = self.plan(state)
         if keys is None:
             return Label.INCOMPARABLE
         carried = state["carrying"][0] if state.get("carrying") is not None else EMPTY
