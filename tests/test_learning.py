@@ -13,10 +13,12 @@ meta-controller then chooses the same sub-goal again from the same state.
 
 Calibration: the class defaults (stacked sub-goal learners of ``DEFAULT_SUBPOLICY_KWARGS`` training on every step,
 the max-centred preference bonus, the meta-controller on the goal space's features), 8,000 primitive steps, 30
-evaluation episodes on seeds 10,000-10,029, training seeds 0-9, on this 2-core machine with three DoorKey-8x8
-training runs and the test suite running beside it (one torch thread; 82-189 s of training each at a load average
-of 4-5): ``python benchmarks/calibrate_learning_test.py --seeds 0 1 2 3 4 5 6 7 8 9``
-(``benchmarks/results/learning_test_calibration.json``). Alone on this machine the test takes about 40 s.
+evaluation episodes on seeds 10,000-10,029, training seeds 0-9, one torch thread, on this 2-core machine:
+``python benchmarks/calibrate_learning_test.py --seeds 0 1 2 3 4 5 6 7 8 9 --jobs 2``
+(``benchmarks/results/learning_test_calibration.json``: commit 27a83c1, two seeds at once, nothing else running,
+42-52 s of training each). The calibration before the scripted oracle's search changed gave the same figures on every
+seed (82-189 s each, with three DoorKey-8x8 training runs and the test suite beside it, load average 4-5). Alone on
+this machine the test takes about 40 s.
 The random policy scores success 0.60, mean return 0.354 on these seeds.
 
 ==========  ============  ===========
