@@ -42,8 +42,8 @@ def plan_keys(
     The search follows MiniGrid's rules: turn, forward onto empty, floor, goal or open-door cells, pick up a
     key, ball or box, drop onto an empty cell, open a closed door, unlock a locked door with a key of its colour,
     and open a box, which leaves what it holds in its place (``info["boxes"]``: the contents of each box where
-    it lies, ``info["carrying_holds"]``: those of the carried box; a box keeps them when carried). A search state is the agent's cell, direction and load and the
-    cells changed from the start, so a move copies nothing.
+    it lies, ``info["carrying_holds"]``: those of the carried box; a box keeps them when carried). A search state
+    is the agent's cell, direction and load and the cells changed from the start, so a move copies nothing.
 
     :param max_nodes: most search states visited
     :param max_seconds: most seconds spent searching (None: no limit)
@@ -54,6 +54,8 @@ def plan_keys(
         long as the shortest, usually far sooner
     :return: the keys, ``[]`` when the state is already a success, ``None`` when no plan was found within the limits
     """
+    if not weight >= 1.0:
+        raise ValueError(f"weight must be >= 1, got {weight}")
     goal_space = goal_space or MiniGridGoalSpace()
     grid0 = np.asarray(info["grid"], dtype=np.uint8)
     width, height = grid0.shape[:2]
@@ -104,8 +106,6 @@ def plan_keys(
             left += ahead != left - 1
         return left + (target is not None and carried != _NO_OBJECT)
 
-    if not weight >= 1.0:
-        raise ValueError(f"weight must be >= 1, got {weight}")
     start = (int(info["agent_pos"][0]), int(info["agent_pos"][1]), int(info["agent_dir"]), carrying0, ())
     reached: dict[tuple, tuple[int, Optional[tuple]]] = {start: (0, None)}  # state -> (steps, the state before)
     queue = [(weight * remaining(start), 0, 0, start)]  # (steps + weight * remaining, -steps, order, state)
