@@ -62,12 +62,17 @@ def entry_kwargs(env_id: str, overrides: str = "{}") -> tuple[str, dict[str, Any
     return name, kwargs
 
 
+def timed_steps(model: Any, steps: int) -> float:
+    """Train ``model`` on for ``steps`` primitive steps: primitive steps per second."""
+    begin, before = time.perf_counter(), model.num_timesteps
+    model.learn(steps, reset_num_timesteps=False)
+    return (model.num_timesteps - before) / (time.perf_counter() - begin)
+
+
 def timed_window(model: Any, start: int, stop: int) -> float:
     """Train ``model`` to ``start`` steps untimed, then to ``stop`` timed: primitive steps per second over the window."""
     model.learn(start)
-    begin, steps = time.perf_counter(), model.num_timesteps
-    model.learn(stop - model.num_timesteps, reset_num_timesteps=False)
-    return (model.num_timesteps - steps) / (time.perf_counter() - begin)
+    return timed_steps(model, stop - model.num_timesteps)
 
 
 def make_envs(env_id: str, n_envs: int, seed: int) -> Any:
@@ -84,9 +89,7 @@ def ratio(args: argparse.Namespace) -> dict[str, Any]:
     hhp_fps = timed_window(hhp, args.start, args.stop)
     # the flat DQN timed again over as many steps right after HhP (a machine of this kind drifts): HhP is compared
     # with the mean of the two
-    begin, steps = time.perf_counter(), dqn.num_timesteps
-    dqn.learn(args.stop - args.start, reset_num_timesteps=False)
-    dqn_after = (dqn.num_timesteps - steps) / (time.perf_counter() - begin)
+    dqn_after = timed_steps(dqn, args.stop - args.start)
     dqn_fps = (dqn_before + dqn_after) / 2
     profiler = cProfile.Profile()
     profiler.enable()
@@ -128,10 +131,7 @@ def late(args: argparse.Namespace) -> dict[str, Any]:
     entry, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
     hhp = HhP.load(args.model, env=make_envs(args.env, args.n_envs, args.seed), device="cpu")
     hhp.oracle = None  # no more questions: a run's budget is spent by its end
-    start_steps = hhp.num_timesteps
-    begin = time.perf_counter()
-    hhp.learn(args.profile_steps, reset_num_timesteps=False)
-    hhp_fps = (hhp.num_timesteps - start_steps) / (time.perf_counter() - begin)
+    hhp_fps = timed_steps(hhp, args.profile_steps)
     profiler = cProfile.Profile()
     profiler.enable()
     hhp.learn(args.profile_steps, reset_num_timesteps=False)

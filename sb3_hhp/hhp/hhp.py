@@ -90,6 +90,13 @@ DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similari
 #: updated in one round (``subgoal_learner="stacked"``; None: all)
 SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(exploration_steps=5_000, share_experience=True, train_shared=None,
                                                 max_updates=8)
+#: each ``*_kwargs`` argument grouped over defaults: its defaults and the keys it accepts (None: the defaults' keys)
+GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
+    "query_kwargs": (QUERY_DEFAULTS, None),
+    "predictor_kwargs": (PREDICTOR_DEFAULTS, PREDICTOR_KEYS),
+    "discovery_kwargs": (DISCOVERY_DEFAULTS, None),
+    "subgoal_learner_kwargs": (SUBGOAL_LEARNER_DEFAULTS, None),
+}
 #: constructor arguments of earlier versions and where they went: old name -> (``*_kwargs`` argument, key)
 MOVED_ARGUMENTS: dict[str, tuple[str, str]] = {
     "t_qry": ("query_kwargs", "threshold"),
@@ -134,9 +141,9 @@ def _refuse_moved(moved: dict[str, Any]) -> None:
         raise TypeError(f"HhP got unexpected keyword arguments {sorted(moved)}")
 
 
-def _grouped(name: str, given: Optional[dict[str, Any]], defaults: dict[str, Any],
-             keys: Optional[frozenset] = None) -> dict[str, Any]:
-    """``defaults`` updated with ``given``; a key outside ``keys`` (default: the defaults' keys) is refused."""
+def _grouped(name: str, given: Optional[dict[str, Any]]) -> dict[str, Any]:
+    """The ``*_kwargs`` argument ``name``: its defaults updated with ``given``; a key it does not accept is refused."""
+    defaults, keys = GROUPED_ARGUMENTS[name]
     if given is not None and not isinstance(given, dict):
         raise ValueError(f"{name} must be a dict, got {type(given).__name__}")
     known = keys if keys is not None else frozenset(defaults)
@@ -350,10 +357,10 @@ class HhP(BetweenEpisodes, DoubleDQN):
             raise ValueError(f"meta_input must be 'auto', 'features' or 'observation', got {meta_input!r}")
         if center_bonus not in (True, False, "mean", "max"):
             raise ValueError(f"center_bonus must be True / 'mean', 'max' or False, got {center_bonus!r}")
-        self.query_kwargs = _grouped("query_kwargs", query_kwargs, QUERY_DEFAULTS)
-        self.predictor_kwargs = _grouped("predictor_kwargs", predictor_kwargs, PREDICTOR_DEFAULTS, PREDICTOR_KEYS)
-        self.discovery_kwargs = _grouped("discovery_kwargs", discovery_kwargs, DISCOVERY_DEFAULTS)
-        self.subgoal_learner_kwargs = _grouped("subgoal_learner_kwargs", subgoal_learner_kwargs, SUBGOAL_LEARNER_DEFAULTS)
+        self.query_kwargs = _grouped("query_kwargs", query_kwargs)
+        self.predictor_kwargs = _grouped("predictor_kwargs", predictor_kwargs)
+        self.discovery_kwargs = _grouped("discovery_kwargs", discovery_kwargs)
+        self.subgoal_learner_kwargs = _grouped("subgoal_learner_kwargs", subgoal_learner_kwargs)
         _check_grouped(self.query_kwargs, self.predictor_kwargs, self.subgoal_learner_kwargs)
         learner = self.subgoal_learner_kwargs
         if learner["train_shared"] is None:  # discrete sub-goal learners train on every step; one DDPG model each does not
@@ -474,9 +481,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             return
         old.setdefault("max_subgoal_updates", None)  # saved before that argument existed: every learner updated
         grouped = group_moved_arguments(old)
-        for group, defaults in (("query_kwargs", QUERY_DEFAULTS), ("predictor_kwargs", PREDICTOR_DEFAULTS),
-                                ("discovery_kwargs", DISCOVERY_DEFAULTS),
-                                ("subgoal_learner_kwargs", SUBGOAL_LEARNER_DEFAULTS)):
+        for group, (defaults, _) in GROUPED_ARGUMENTS.items():
             setattr(self, group, {**defaults, **(getattr(self, group, None) or {}), **grouped.get(group, {})})
 
     def _setup_model(self) -> None:

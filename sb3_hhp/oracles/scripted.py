@@ -219,11 +219,12 @@ class MiniGridScriptedOracle(Oracle):
         self.goal_space = MiniGridGoalSpace(use_color=use_color)
         self.max_seconds = float(max_seconds)
         self.fallback_weight = float(fallback_weight)
+        self.last_plan_weight: Optional[float] = None  # which search found the last plan (1: a shortest one)
 
     def plan(self, state: dict[str, Any]) -> Optional[list[Hashable]]:
         """The sub-goal keys along a plan from ``state`` (:func:`plan_keys`) within ``max_seconds``: a shortest one,
         else one at most ``fallback_weight`` times as long, else None."""
-        self.last_plan_weight: Optional[float] = None  # which search found the last plan (1: a shortest one)
+        self.last_plan_weight = None
         searches = ((1.0, 0.25), (self.fallback_weight, 0.75)) if self.fallback_weight > 1 else ((1.0, 1.0),)
         for weight, share in searches:
             keys = plan_keys(state, self.goal_space, max_seconds=share * self.max_seconds, weight=weight)
