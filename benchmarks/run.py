@@ -3,6 +3,9 @@
     python -m benchmarks.run benchmarks/experiments/doorkey8x8.yml --jobs 2
     python benchmarks/report.py benchmarks/results/doorkey8x8/results.csv
 
+``--envs``, ``--variants`` and ``--seeds`` run a part of the sweep (same output folder, same rows), e.g. one long
+run at a time: ``--envs MiniGrid-DoorKey-16x16-v0 --variants hhp --seeds 0``.
+
 Variants:
 
 - ``hhp``: ``python -m sb3_hhp.train --env ENV --oracle scripted -n STEPS --seed S --eval-both ...``, the
@@ -469,6 +472,49 @@ def write_results(results: Any, csv_path: Union[str, Path]) -> None:
     os.replace(temporary, csv_path)
 
 
+def add_result(row: dict[str, Any], csv_path: Union[str, Path]) -> None:
+    """Add one experiment's row to ``results.csv``, read again under a lock: several runners of parts of one sweep
+    (``--envs``, ``--variants``, ``--seeds``) may write into the same folder, and none loses another's rows."""
+    import fcntl
+
+    import pandas as pd
+
+    csv_path = Path(csv_path)
+    with open(csv_path.with_suffix(".csv.lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        results = read_results(csv_path)
+        same = pd.Series(True, index=results.index)
+        for column in KEY_COLUMNS:  # a row of the same experiment (a rerun) is replaced
+            same &= results[column] == row[column]
+        results = pd.concat([results[~same].dropna(axis=1, how="all"), pd.DataFrame([row])], ignore_index=True)
+        write_results(results.reindex(columns=list(COLUMNS)), csv_path)
+
+
+def select_experiments(
+    sweep: Sweep,
+    envs: Optional[list[str]] = None,
+    variants: Optional[list[str]] = None,
+    seeds: Optional[list[int]] = None,
+) -> Sweep:
+    """The part of ``sweep`` with the given envs, variants and seeds (None: all), e.g. one long run at a time.
+
+    :raises SweepError: a value the sweep does not have (the sweep's own values are named)
+    """
+    experiments = sweep.experiments
+    for field, wanted in (("env", envs), ("variant", variants), ("seed", seeds)):
+        if wanted is None:
+            continue
+        present = list(dict.fromkeys(getattr(experiment, field) for experiment in sweep.experiments))
+        unknown = [value for value in wanted if value not in present]
+        if unknown:
+            raise SweepError(
+                f"the sweep {sweep.name!r} has no {field} {', '.join(map(str, unknown))}; "
+                f"its {field}s: {', '.join(map(str, present))}"
+            )
+        experiments = tuple(experiment for experiment in experiments if getattr(experiment, field) in wanted)
+    return dataclasses.replace(sweep, experiments=experiments)
+
+
 def pending_experiments(sweep: Sweep, results: Any) -> list[Experiment]:
     """The experiments of ``sweep`` with no row in ``results`` yet (same env, variant, seed and steps)."""
     done = {
@@ -520,9 +566,7 @@ def run_sweep(
                 failures.append(f"{experiment.name}: {type(error).__name__}: {error} (log: {log})")
                 progress.write(f"failed: {failures[-1]}")
                 continue
-            results = pd.concat([results.dropna(axis=1, how="all"), pd.DataFrame([row])], ignore_index=True)
-            results = results.reindex(columns=list(COLUMNS))
-            write_results(results, csv_path)
+            add_result(row, csv_path)
             det, stoch = (row.get(key) for key in ("success_det", "success_stoch"))
             progress.write(f"{experiment.name}: success det {det} stoch {stoch}, {row.get('wall_seconds')} s")
     return csv_path, failures
@@ -536,11 +580,14 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("config", help="the sweep's YAML file (e.g. benchmarks/experiments/doorkey8x8.yml)")
     parser.add_argument("--jobs", type=int, default=1, help="experiments at once, one process each (default 1)")
     parser.add_argument("--out", default=None, help="output folder (default benchmarks/results/<sweep name>)")
+    parser.add_argument("--envs", nargs="+", default=None, help="run only these of the sweep's env ids")
+    parser.add_argument("--variants", nargs="+", default=None, help="run only these of the sweep's variants")
+    parser.add_argument("--seeds", nargs="+", type=int, default=None, help="run only these of the sweep's seeds")
     args = parser.parse_args(argv)
     try:
         if args.jobs < 1:
             raise SweepError(f"--jobs must be >= 1, got {args.jobs}")
-        sweep = load_sweep(args.config)
+        sweep = select_experiments(load_sweep(args.config), args.envs, args.variants, args.seeds)
         out = Path(args.out) if args.out else Path("benchmarks") / "results" / sweep.name
         start = time.perf_counter()
         csv_path, failures = run_sweep(sweep, out, args.jobs)

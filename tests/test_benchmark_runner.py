@@ -17,9 +17,11 @@ from benchmarks.run import (
     _curve_from_evaluations,
     load_sweep,
     main,
+    add_result,
     pending_experiments,
     read_results,
     run_sweep,
+    select_experiments,
 )
 
 EXPERIMENTS = Path(__file__).resolve().parent.parent / "benchmarks" / "experiments"
@@ -131,6 +133,33 @@ def test_sweep_is_resumable_and_writes_one_tidy_csv(tmp_path):
     _, failures = run_sweep(bigger, out, jobs=1, runner=failing_row)
     assert len(failures) == 1 and "exited with status 1" in failures[0]
     assert len(pd.read_csv(csv_path)) == 4
+
+
+def test_parts_of_a_sweep_run_apart_and_share_one_csv(tmp_path):
+    # the four MiniGrid tasks take hours a run: each part is started on its own, into the same folder
+    sweep = load_sweep(EXPERIMENTS / "minigrid_tasks.yml", check_envs=False)
+    part = select_experiments(sweep, envs=["MiniGrid-DoorKey-16x16-v0"], variants=["hhp"], seeds=[0])
+    assert [e.key for e in part.experiments] == [("MiniGrid-DoorKey-16x16-v0", "hhp", 0, 2_000_000)]
+    assert len(select_experiments(sweep, variants=["ppo", "ppo_rnd"]).experiments) == 4 * 2 * 3
+    with pytest.raises(SweepError, match="no variant dqn; its variants: hhp, ppo, ppo_rnd"):
+        select_experiments(sweep, variants=["dqn"])
+    with pytest.raises(SweepError, match="no seed 7"):
+        select_experiments(sweep, seeds=[0, 7])
+    # two runners of different parts, each started before the other wrote: neither loses the other's row
+    small = load_sweep(write(tmp_path, GRID.replace("[ppo]", "[hhp, ppo]") + "steps: 100"), check_envs=False)
+    out = tmp_path / "out"
+    out.mkdir()
+    first, second = (select_experiments(small, variants=[variant]) for variant in ("hhp", "ppo"))
+    assert pending_experiments(first, read_results(out / "results.csv")) == list(first.experiments)
+    assert pending_experiments(second, read_results(out / "results.csv")) == list(second.experiments)
+    run_sweep(first, out, jobs=1, runner=fake_row)
+    run_sweep(second, out, jobs=1, runner=fake_row)
+    assert sorted(pd.read_csv(out / "results.csv")["variant"]) == ["hhp", "ppo"]
+    # a row written again for the same experiment replaces the old one
+    row = fake_row(small.experiments[0], small, out)
+    add_result({**row, "success_det": 0.75}, out / "results.csv")
+    results = pd.read_csv(out / "results.csv")
+    assert len(results) == 2 and results.loc[results["variant"] == "hhp", "success_det"].tolist() == [0.75]
 
 
 def test_curve_from_periodic_evaluations(tmp_path):
