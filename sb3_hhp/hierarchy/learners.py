@@ -177,6 +177,7 @@ class StackedDQN:
         self._make_policy = lambda: policy_class(net_space, action_space, lambda _: self.lr, **policy_kwargs)
         self._template = self._make_policy().q_net.to(self.device)
         self._normalize_images = self._template.normalize_images
+        self._scale_images = is_image_space(net_space) and self._normalize_images  # as SB3's preprocess_obs scales
         named = list(self._template.named_parameters())
         self._names = [name for name, _ in named]
         self._shapes = [tuple(value.shape) for _, value in named]
@@ -188,6 +189,7 @@ class StackedDQN:
         # every sub-goal's parameters as one row of a (capacity, P) tensor: the update is one Adam step on one tensor
         self.params = th.zeros((0, self._offsets[-1]), device=self.device)
         self.target = th.zeros_like(self.params)
+        self._views: dict[tuple, Any] = {}  # views of the stacked tensors (_unflatten, _adam_rows)
         self.exp_avg = th.zeros_like(self.params)
         self.exp_avg_sq = th.zeros_like(self.params)
         self.adam_steps = th.zeros(0, dtype=th.float64)
@@ -212,10 +214,18 @@ class StackedDQN:
         return len(self.recent)
 
     def _unflatten(self, flat: th.Tensor) -> dict[str, th.Tensor]:
-        """Named parameter views of flat rows (any leading shape)."""
+        """Named parameter views of flat rows (any leading shape). The views of the first rows of :attr:`params` or
+        :attr:`target` (read at every update) are kept: those tensors are only ever changed in place."""
+        stacked = flat._base is not None and (flat._base is self.params or flat._base is self.target)
+        key = (id(flat._base), tuple(flat.shape)) if stacked and flat.data_ptr() == flat._base.data_ptr() else None
+        if key is not None and key in self._views:
+            return self._views[key]
         lead = flat.shape[:-1]
-        return {name: flat[..., start:stop].view(*lead, *shape)
-                for name, shape, start, stop in zip(self._names, self._shapes, self._offsets[:-1], self._offsets[1:])}
+        views = {name: flat[..., start:stop].view(*lead, *shape)
+                 for name, shape, start, stop in zip(self._names, self._shapes, self._offsets[:-1], self._offsets[1:])}
+        if key is not None:  # a view holds its base, so the id stays that tensor's while the entry lives
+            self._views[key] = views
+        return views
 
     def _rows(self, goals: np.ndarray) -> Any:
         """An index of the learners ``goals`` into the stacked tensors: a slice (rows read in place) when they are the
@@ -226,7 +236,9 @@ class StackedDQN:
 
     def _mlp_input(self, obs: th.Tensor) -> th.Tensor:
         """What a plain MLP reads of ``obs`` ``(T, N, ...)``: SB3's preprocessing, flattened to ``(T, N, D)``."""
-        x = preprocess_obs(obs, self.observation_space, normalize_images=self._normalize_images).float()
+        x = obs.float()  # SB3's preprocessing of a Box (an MLP reads no other): as a float, images scaled to [0, 1]
+        if self._scale_images:
+            x = x / 255.0
         return x.reshape(*obs.shape[:2], -1)
 
     def _vq(self, flat: th.Tensor, obs: th.Tensor) -> th.Tensor:
@@ -244,6 +256,8 @@ class StackedDQN:
             if kind == "linear":
                 weight, bias = params[item + ".weight"], params[item + ".bias"]
                 x = th.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
+            elif self._relu_mlp:  # in place: the backward pass reads only the activated output
+                x = th.relu_(x)
             else:
                 x = item(x)
             outputs.append(x)
@@ -276,6 +290,7 @@ class StackedDQN:
             return new
 
         self.params, self.target = extend(self.params), extend(self.target)
+        self._views.clear()
         self.exp_avg, self.exp_avg_sq = extend(self.exp_avg), extend(self.exp_avg_sq)
         steps = th.zeros(capacity, dtype=th.float64)
         steps[: len(self.adam_steps)] = self.adam_steps
@@ -478,14 +493,23 @@ class StackedDQN:
         self.last_loss = float(loss.mean().detach())
         return self.last_loss
 
+    def _adam_rows(self) -> tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor]]:
+        """Each sub-goal's row of the parameters and of Adam's two moments (views, updated in place), kept until the
+        stacked tensors grow."""
+        key = ("adam", id(self.params), len(self.params))
+        if key not in self._views:
+            self._views[key] = tuple(list(tensor.unbind(0)) for tensor in (self.params, self.exp_avg, self.exp_avg_sq))
+        return self._views[key]
+
     def _adam(self, goals: np.ndarray, grad: th.Tensor, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8) -> None:
         """Adam (torch's, its fused kernel) with each sub-goal's own step count, after clipping each sub-goal's
         gradient norm to ``max_grad_norm`` (as SB3 clips a model's); the rows of ``goals`` are updated in place."""
         grad = grad * th.clamp(self.max_grad_norm / (grad.norm(dim=1, keepdim=True) + 1e-6), max=1.0)
         self.adam_steps[goals] += 1
         steps = [th.tensor(float(step), device=self.device) for step in self.adam_steps[goals]]
-        th._fused_adam_([self.params[g] for g in goals], list(grad.unbind(0)), [self.exp_avg[g] for g in goals],
-                        [self.exp_avg_sq[g] for g in goals], [], steps, lr=self.lr, beta1=betas[0], beta2=betas[1],
+        rows = self._adam_rows()
+        th._fused_adam_([rows[0][g] for g in goals], list(grad.unbind(0)), [rows[1][g] for g in goals],
+                        [rows[2][g] for g in goals], [], steps, lr=self.lr, beta1=betas[0], beta2=betas[1],
                         weight_decay=0.0, eps=eps, amsgrad=False, maximize=False)
         if self.rounds % 1000 == 0:
             # moments that decay towards 0 (inputs that are always 0) become subnormal floats, which CPUs multiply
