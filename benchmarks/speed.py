@@ -131,6 +131,7 @@ def late(args: argparse.Namespace) -> dict[str, Any]:
     entry, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
     hhp = HhP.load(args.model, env=make_envs(args.env, args.n_envs, args.seed), device="cpu")
     hhp.oracle = None  # no more questions: a run's budget is spent by its end
+    start_steps = hhp.num_timesteps
     hhp_fps = timed_steps(hhp, args.profile_steps)
     profiler = cProfile.Profile()
     profiler.enable()
