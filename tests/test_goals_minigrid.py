@@ -562,3 +562,42 @@ def test_a_carried_box_keeps_what_it_holds() -> None:
     assert keys.index((EMPTY, KEY, 0)) < keys.index((KEY, OBJECT_TO_IDX["door"], STATE_TO_IDX["locked"]))
     assert plan_keys({**facts, "carrying_holds": None}, goal_space, max_seconds=0.2) is None
     env.close()
+
+
+def test_snapshots_are_compact_and_give_the_privileged_facts() -> None:
+    """Training keeps a snapshot of every sub-goal choice while questions remain: the grid as a uint8 array, turned
+    into the JSON facts of privileged() only for the choices a question is asked about."""
+    import json
+    import tracemalloc
+
+    from sb3_hhp.goals.base import GoalSpace
+
+    env = gym.make("MiniGrid-ObstructedMaze-1Q-v1")
+    env.reset(seed=0)
+    goal_space = MiniGridGoalSpace()
+    snapshot = goal_space.snapshot(env)
+    assert snapshot["grid"].dtype == np.uint8 and snapshot["grid"].shape == (env.unwrapped.width, env.unwrapped.height, 3)
+    facts = goal_space.facts(snapshot)
+    assert facts == goal_space.privileged(env) and facts["boxes"]
+    assert json.loads(json.dumps(facts)) == facts  # JSON values, as questions store them
+    assert isinstance(snapshot["grid"], np.ndarray)  # facts() left the snapshot as it was
+    big = gym.make("MiniGrid-DoorKey-16x16-v0")
+    big.reset(seed=0)
+    tracemalloc.start()
+    kept = [goal_space.snapshot(big) for _ in range(100)]
+    per_snapshot = tracemalloc.get_traced_memory()[0] / len(kept)
+    tracemalloc.stop()
+    assert per_snapshot < 3_000  # the nested lists of privileged() take ~24 KB here
+
+    class OwnFacts(GoalSpace):  # a goal space written before snapshots: its privileged facts are still recorded
+        def supports(self, env: gym.Env) -> bool:
+            return True
+
+        def key(self, obs: np.ndarray) -> tuple:
+            return ()
+
+        def privileged(self, env: gym.Env) -> dict:
+            return {"agent_pos": [1, 2]}
+
+    own = OwnFacts()
+    assert own.facts(own.snapshot(env)) == {"agent_pos": [1, 2]}

@@ -70,8 +70,18 @@ class GoalSpace(ABC):
         return np.array([1.0 if key == other else 0.0 for other in goal_keys], dtype=np.float64)
 
     def privileged(self, env: gym.Env) -> dict[str, Any]:
-        """Privileged facts about the current state for scripted oracles (never shown to people)."""
+        """Privileged facts about the current state for scripted oracles (never shown to people), as JSON values."""
         return {}
+
+    def snapshot(self, env: gym.Env) -> Any:
+        """What :meth:`privileged` needs of the current state, kept compact: training takes one at every sub-goal
+        choice while questions remain, and turns into facts (:meth:`facts`) only those a question is asked about.
+        Default: the facts themselves."""
+        return self.privileged(env)
+
+    def facts(self, snapshot: Any) -> dict[str, Any]:
+        """The privileged facts (JSON values) of a :meth:`snapshot`."""
+        return dict(snapshot)
 
     def query_info(self, state: np.ndarray, goal1_obs: np.ndarray, goal2_obs: np.ndarray) -> dict[str, Any]:
         """Facts a scripted oracle reads off a question's state and its two sub-goals' observations, added

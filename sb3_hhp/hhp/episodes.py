@@ -134,7 +134,7 @@ class BetweenEpisodes:
             goal1_obs=subgoals[first].obs, goal2_obs=subgoals[second].obs,
             state_image=state_image, goal1_image=subgoals[first].image, goal2_image=subgoals[second].image,
             info={
-                "state": trace.high_privileged[choice],
+                "state": goal_space.facts(trace.high_privileged[choice]),
                 "goal1_key": _key_json(subgoals[first].key),
                 "goal2_key": _key_json(subgoals[second].key),
                 "goal1_name": goal_space.describe(subgoals[first].key),

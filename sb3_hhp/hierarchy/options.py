@@ -75,7 +75,7 @@ class EpisodeTrace:
 
     high_obs: list = field(default_factory=list)  # s_t at each sub-goal choice
     high_goals: list = field(default_factory=list)  # g chosen
-    high_privileged: list = field(default_factory=list)  # privileged facts of s_t (scripted oracles)
+    high_privileged: list = field(default_factory=list)  # snapshots of s_t's privileged facts (scripted oracles)
     high_images: list = field(default_factory=list)  # rendered s_t (people), when recorded
     high_returns: list = field(default_factory=list)  # R_e of each option
     low_obs: list = field(default_factory=list)  # every primitive next state s_{t+1}
@@ -211,7 +211,7 @@ class OptionRunner:
             trace.high_obs.append(self.choice_obs[env])
             trace.high_goals.append(int(goal))
             view = env_view(self.venv, int(env))
-            trace.high_privileged.append(self.goal_space.privileged(view) if self.record_privileged else None)
+            trace.high_privileged.append(self.goal_space.snapshot(view) if self.record_privileged else None)
             if self.record_images:
                 trace.high_images.append(self.goal_space.render(view))
 
