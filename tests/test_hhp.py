@@ -831,6 +831,28 @@ def test_resume_with_a_preference_database(tmp_path, budget: int, first_steps: i
     assert all(query.info.get("signature") for query in questions)
 
 
+def test_stored_questions_show_the_room_drawn_from_facts_without_a_render_per_choice(tmp_path, monkeypatch) -> None:
+    """MiniGrid draws a question's state from the choice's privileged facts: a run that keeps its questions renders
+    nothing at its sub-goal choices (a render cost more than the rest of a step), and each stored question still
+    carries the room as the labeling page draws it."""
+    from sb3_hhp.goals.minigrid import MiniGridGoalSpace
+
+    renders = []
+    monkeypatch.setattr(MiniGridGoalSpace, "render", lambda self, env: renders.append(1))
+    model = make_model(DOORKEY, preference_db=str(tmp_path / "prefs.sqlite"), mask_subgoals=False,
+                       subgoal_learner="heads")
+    assert model.record_images is False
+    model.learn(2_000)
+    questions = [model.store.get_query(query_id) for query_id in model.store.asked_ids()]
+    assert questions and renders == []
+    for query in questions:
+        drawn = model.goal_space.image_in_state(query.info["state"])
+        assert drawn is not None and np.array_equal(query.state_image, drawn)
+    # a goal space that cannot draw from facts still renders at every choice when questions are kept
+    monkeypatch.setattr(MiniGridGoalSpace, "draws_from_facts", False)
+    assert make_model(DOORKEY, preference_db=str(tmp_path / "other.sqlite")).record_images is True
+
+
 def test_the_labeling_pages_gallery_is_written_into_the_preference_file(tmp_path) -> None:
     db = str(tmp_path / "prefs.sqlite")
     model = make_model(DOORKEY, preference_db=db, subgoal_learner="heads")  # heads: more sub-goals in these few steps

@@ -108,6 +108,11 @@ class GoalSpace(ABC):
         """The sub-goal key stored as JSON in a question's ``info`` (a tuple key comes back as a list)."""
         return tuple(value) if isinstance(value, list) else value
 
+    #: whether :meth:`image_in_state` draws a state from its privileged facts: then a question's state image is drawn
+    #: from the facts of that choice, and training renders nothing at its choices (a render per choice costs
+    #: 1.3-2.6 ms on MiniGrid, more than the rest of a primitive step)
+    draws_from_facts: bool = False
+
     def image_in_state(self, state: dict[str, Any], key: Optional[Hashable] = None) -> Optional[np.ndarray]:
         """An RGB image of the state whose privileged facts (:meth:`privileged`) are ``state``, drawn the
         same way for every question; with ``key``, the part of that state the sub-goal concerns stands

@@ -333,6 +333,8 @@ class MiniGridGoalSpace(GoalSpace):
             mask |= of_kind(carried, carried_color)
         return mask
 
+    draws_from_facts = True
+
     def image_in_state(self, state: dict[str, Any], key: Optional[Hashable] = None) -> Optional[np.ndarray]:
         """The state's room drawn by MiniGrid's renderer from its privileged facts (``grid``, ``agent_pos``,
         ``agent_dir``); with ``key``, the cells it concerns (:meth:`concerned_cells`) keep their colours

@@ -126,7 +126,10 @@ class BetweenEpisodes:
         """The question about tuple ``index`` (the episode's choice ``choice``) and the sub-goal ``second``."""
         goal_space, subgoals = self.goal_space, self.subgoals
         first = int(goals[index])
+        facts = goal_space.facts(trace.high_privileged[choice])
         state_image = trace.high_images[choice] if choice < len(trace.high_images) else None
+        if state_image is None and goal_space.draws_from_facts:
+            state_image = goal_space.image_in_state(facts)
         if state_image is None:
             state_image = goal_space.image_of(states[index])
         return Query(
@@ -134,7 +137,7 @@ class BetweenEpisodes:
             goal1_obs=subgoals[first].obs, goal2_obs=subgoals[second].obs,
             state_image=state_image, goal1_image=subgoals[first].image, goal2_image=subgoals[second].image,
             info={
-                "state": goal_space.facts(trace.high_privileged[choice]),
+                "state": facts,
                 "goal1_key": _key_json(subgoals[first].key),
                 "goal2_key": _key_json(subgoals[second].key),
                 "goal1_name": goal_space.describe(subgoals[first].key),
