@@ -146,6 +146,11 @@ def test_novelty_progress_is_eq8_by_hand():
     assert np.abs(old[0] - old[1]).max() > 1e-3 and np.abs(old[1] - old[2]).max() > 1e-3
     expected = np.mean([current - err for err in old], axis=0)  # eq. 8
     np.testing.assert_allclose(rnd.novelty_progress(obs), expected, rtol=1e-4, atol=1e-6)
+    # states an episode revisits are scored once: each repeat gets its first occurrence's value, in place
+    order = [3, 0, 3, 6, 1, 0, 0, 5, 2, 4, 6]
+    repeated = rnd.novelty_progress(obs[order])
+    np.testing.assert_allclose(repeated, expected[order], rtol=1e-4, atol=1e-6)
+    assert repeated[0] == repeated[2] and repeated[1] == repeated[5] == repeated[6]
 
 
 def test_omega_keeps_the_m_newest_snapshots_every_t_steps():
