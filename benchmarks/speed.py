@@ -2,7 +2,8 @@
 
 Three measurements, one torch thread each unless ``--threads``:
 
-``ratio``: HhP (the env's ``hyperparams/hhp.yml`` entry) against flat SB3 DQN doing the same learning work per
+``ratio``: HhP (the env's ``hyperparams/hhp.yml`` entry, with the scripted oracle and a preference file, as
+``sb3_hhp.train`` builds it) against flat SB3 DQN doing the same learning work per
 primitive step on the same observation (the entry's sub-goal learner: MLP, ``train_freq``, ``batch_size``), both
 timed over the same late window of a run (default steps 20,000-30,000, when sub-goals have accumulated), in one
 process, the flat DQN once before HhP and once after it over as many steps (HhP is compared with their mean: the
@@ -34,6 +35,7 @@ import pstats
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 from typing import Any
 
@@ -62,6 +64,13 @@ def entry_kwargs(env_id: str, overrides: str = "{}") -> tuple[str, dict[str, Any
     return name, kwargs
 
 
+def as_trained(kwargs: dict[str, Any], folder: pathlib.Path) -> dict[str, Any]:
+    """``kwargs`` as ``sb3_hhp.train`` completes them: the scripted oracle, and a preference file in the run's folder
+    (what the store and the per-choice work cost is measured with it)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    return {"oracle": "scripted", "preference_db": str(folder / "preferences.sqlite"), **kwargs}
+
+
 def timed_steps(model: Any, steps: int) -> float:
     """Train ``model`` on for ``steps`` primitive steps: primitive steps per second."""
     begin, before = time.perf_counter(), model.num_timesteps
@@ -82,10 +91,10 @@ def make_envs(env_id: str, n_envs: int, seed: int) -> Any:
 
 def ratio(args: argparse.Namespace) -> dict[str, Any]:
     entry, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
-    kwargs["oracle"] = "scripted"
     dqn, learning = flat_dqn(args, kwargs)
     dqn_before = timed_window(dqn, args.start, args.stop)
-    hhp = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **kwargs)
+    folder = pathlib.Path(tempfile.mkdtemp(prefix="hhp_speed_"))
+    hhp = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **as_trained(kwargs, folder))
     hhp_fps = timed_window(hhp, args.start, args.stop)
     # the flat DQN timed again over as many steps right after HhP (a machine of this kind drifts): HhP is compared
     # with the mean of the two
