@@ -848,9 +848,10 @@ def test_stored_questions_show_the_room_drawn_from_facts_without_a_render_per_ch
     for query in questions:
         drawn = model.goal_space.image_in_state(query.info["state"])
         assert drawn is not None and np.array_equal(query.state_image, drawn)
-    # a goal space that cannot draw from facts still renders at every choice when questions are kept
+    # a goal space that cannot draw from facts renders at every choice for a person, not for a script
     monkeypatch.setattr(MiniGridGoalSpace, "draws_from_facts", False)
-    assert make_model(DOORKEY, preference_db=str(tmp_path / "other.sqlite")).record_images is True
+    assert make_model(DOORKEY, preference_db=str(tmp_path / "other.sqlite")).record_images is False
+    assert make_model(DOORKEY, oracle="terminal").record_images is True
 
 
 def test_the_labeling_pages_gallery_is_written_into_the_preference_file(tmp_path) -> None:

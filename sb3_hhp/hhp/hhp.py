@@ -247,8 +247,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
         space has them and ``policy_kwargs`` names no features extractor; see the README's Design)
     :param preference_db: path of the SQLite preference store (None: in memory)
     :param record_images: render the state at every sub-goal choice, for the questions' state images (default: when
-        a person answers or questions are kept in ``preference_db``, unless the goal space draws a question's state
-        from its privileged facts, as MiniGrid's does: ``GoalSpace.draws_from_facts``)
+        a person answers, ``oracle="web"`` or ``"terminal"``, unless the goal space draws a question's state from its
+        privileged facts, as MiniGrid's does: ``GoalSpace.draws_from_facts``; a render costs ~20 ms on Fetch)
     :param n_opt: meta-controller gradient steps after each episode (N_opt = 4)
     :param query_kwargs: when to ask (keys and defaults: :data:`QUERY_DEFAULTS`): ``threshold`` (the paper's
         t_qry, fixed mode), ``mode`` ("adaptive" paces the budget over training, design decisions: adaptive
@@ -532,8 +532,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
         self.store.set_query_budget(self.query_budget)  # shown on the labeling page as "asked / budget"
         self.subgoal_table = SubgoalTable(self.store)  # the labeling page's gallery, in the store's file
         self.oracle = self._make_oracle()
-        if self.record_images is None:  # states shown to people or kept with stored questions, unless drawn from facts
-            self.record_images = ((self.oracle_spec in ("web", "terminal") or self.preference_db is not None)
+        if self.record_images is None:  # states shown to people, unless a question's state is drawn from its facts
+            self.record_images = (self.oracle_spec in ("web", "terminal")
                                   and not getattr(self.goal_space, "draws_from_facts", False))
         if not hasattr(self, "consumed_query_ids"):
             self.consumed_query_ids: set[str] = set()
