@@ -6,7 +6,10 @@
 Next to each ``results.csv`` it writes ``benchmark.md`` (one row per env x variant: mean ± std over seeds of
 the success rate of the deterministic and of the stochastic policy on the fresh evaluation episodes, of the
 labels used and of the wall time) and ``curves_<env>.png`` (success rate at the periodic evaluations against
-env steps: the mean over seeds, a band of ± one std, a line per variant), and prints the table.
+env steps: the mean over seeds, a band of ± one std, a line per variant), and prints the table. Runs started but
+without a row yet (still training, or stopped) are listed apart with the steps their periodic evaluations reached,
+and drawn as dashed lines from those evaluations (``curves/<run>.partial.csv``): a sweep of runs that take hours can
+be looked at while it runs, and a stopped run's evaluations are not lost.
 Needs the ``plots`` extra (pandas, matplotlib).
 """
 
@@ -18,6 +21,12 @@ from typing import Optional
 
 import numpy as np
 import pandas as pd
+
+try:
+    from benchmarks.run import _curve_from_evaluations
+except ImportError:  # run as a script, python benchmarks/report.py: the repository's root is not on the path
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    from benchmarks.run import _curve_from_evaluations
 
 #: variant -> name in tables and legends, in the order of tables and plots
 VARIANT_NAMES = {"hhp": "HhP", "dqn": "DQN", "ppo": "PPO", "ppo_rnd": "PPO + RND"}
@@ -119,11 +128,53 @@ def mean_curve(curves: Sequence[pd.DataFrame], column: str = "success") -> Optio
     return pd.DataFrame({"steps": grid, "mean": values.mean(axis=0), "std": values.std(axis=0, ddof=1)})
 
 
-def plot_curves(results: pd.DataFrame, folder: Path) -> list[Path]:
-    """One plot per env with learning curves: success rate against env steps, mean ± std over seeds per variant.
+def _run_name(env: str, variant: str, seed: int) -> str:
+    """The runner's name of a run (``benchmarks.run.Experiment.name``)."""
+    return f"{env.replace('/', '-')}__{variant}__s{seed}"
+
+
+def unfinished_runs(results: pd.DataFrame, folder: Path) -> pd.DataFrame:
+    """The runs with a log folder (``logs/<run>``) and no row in ``results``: still training, or stopped. The newest
+    ``evaluations.npz`` under each log folder becomes ``curves/<run>.partial.csv``.
+
+    :return: one row per run: ``env`` (as in run names: ``/`` written ``-``), ``variant``, ``seed``, ``steps`` (the
+        last periodic evaluation's, 0 before any), ``success`` (at that evaluation), ``curve`` (relative to ``folder``)
+    """
+    finished = {_run_name(row.env, row.variant, int(row.seed)) for row in results.itertuples()}
+    rows = []
+    for log in sorted((folder / "logs").glob("*__*__s*")):
+        if not log.is_dir() or log.name in finished:
+            continue
+        env, variant, seed = log.name.rsplit("__", 2)
+        evaluations = sorted(log.rglob("evaluations.npz"), key=lambda path: path.stat().st_mtime)
+        relative = Path("curves") / f"{log.name}.partial.csv"
+        written = _curve_from_evaluations(evaluations[-1], folder / relative) if evaluations else None
+        curve = pd.read_csv(folder / relative) if written else None
+        rows.append({"env": env, "variant": variant, "seed": int(seed[1:]),
+                     "steps": int(curve["steps"].iloc[-1]) if curve is not None else 0,
+                     "success": float(curve["success"].iloc[-1]) if curve is not None else float("nan"),
+                     "curve": str(relative) if written else None})
+    return pd.DataFrame(rows, columns=["env", "variant", "seed", "steps", "success", "curve"])
+
+
+def unfinished_table(unfinished: pd.DataFrame) -> str:
+    """The unfinished runs in Markdown (empty without any)."""
+    if unfinished.empty:
+        return ""
+    lines = ["| run | steps reached | success at the last periodic evaluation |", "| --- | ---: | ---: |"]
+    for row in unfinished.itertuples():
+        success = "–" if np.isnan(row.success) else f"{row.success:.2f}"
+        lines.append(f"| {row.env} {variant_name(row.variant)} seed {row.seed} | {row.steps:,} | {success} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(results: pd.DataFrame, folder: Path, unfinished: Optional[pd.DataFrame] = None) -> list[Path]:
+    """One plot per env with learning curves: success rate against env steps, mean ± std over seeds per variant;
+    each unfinished run (:func:`unfinished_runs`) a dashed line of its own.
 
     :param results: the rows of ``results.csv`` (``curve``: a path relative to ``folder``, or empty)
     :param folder: the folder of ``results.csv``, where the plots go
+    :param unfinished: runs without a row yet, with their partial curves
     :return: the plots written
     """
     import matplotlib
@@ -134,9 +185,16 @@ def plot_curves(results: pd.DataFrame, folder: Path) -> list[Path]:
     written = []
     if "curve" not in results.columns:
         return written
-    for env in sorted(results["env"].unique()):
+    unfinished = unfinished if unfinished is not None else pd.DataFrame(columns=["env", "variant", "seed", "steps", "curve"])
+    unfinished = unfinished[unfinished["curve"].notna()]
+    # envs by their names in run names ('/' written '-'), titled with their ids where a finished run gives one
+    titles = {env.replace("/", "-"): env for env in results["env"].unique()}
+    titles.update({env: titles.get(env, env) for env in unfinished["env"].unique()})
+    for name in sorted(titles):
+        env = titles[name]
         rows = results[(results["env"] == env) & results["curve"].notna()]
-        if rows.empty:
+        partial = unfinished[unfinished["env"] == name]
+        if rows.empty and partial.empty:
             continue
         fig, ax = plt.subplots(figsize=(6, 4))
         for variant in _variant_order(list(rows["variant"].unique())):
@@ -151,6 +209,10 @@ def plot_curves(results: pd.DataFrame, folder: Path) -> list[Path]:
                 curve["steps"], (curve["mean"] - curve["std"]).clip(0, 1), (curve["mean"] + curve["std"]).clip(0, 1),
                 color=line.get_color(), alpha=0.2, linewidth=0,
             )
+        for row in partial.itertuples():
+            curve = pd.read_csv(folder / row.curve)
+            ax.plot(curve["steps"], curve["success"], linestyle="--", marker=".",
+                    label=f"{variant_name(row.variant)} seed {row.seed} (unfinished, {row.steps:,} steps)")
         ax.set_title(env)
         ax.set_xlabel("env steps")
         ax.set_ylabel("success rate (periodic evaluations)")
@@ -170,7 +232,10 @@ def report(csv_path: Path) -> tuple[str, Path, list[Path]]:
 
     :return: the table, the Markdown file and the plots
     """
-    results = read_results(csv_path)
+    if csv_path.is_file() or not (csv_path.parent / "logs").is_dir():
+        results = read_results(csv_path)
+    else:  # a sweep whose runs are all still training
+        results = pd.DataFrame(columns=[*REQUIRED_COLUMNS, "curve", "eval_episodes"])
     table = markdown_table(results)
     episodes = sorted(int(value) for value in results["eval_episodes"].dropna().unique()) if "eval_episodes" in results else []
     note = (
@@ -179,8 +244,14 @@ def report(csv_path: Path) -> tuple[str, Path, list[Path]]:
         "preference queries answered (HhP only). Wall time: training and evaluation of one run.\n"
     )
     markdown = csv_path.parent / "benchmark.md"
-    plots = plot_curves(results, csv_path.parent)
+    unfinished = unfinished_runs(results, csv_path.parent)
+    plots = plot_curves(results, csv_path.parent, unfinished)
     figures = "".join(f"\n![{path.stem}]({path.name})\n" for path in plots)
+    pending = unfinished_table(unfinished)
+    if pending:
+        pending = ("\nRuns without a final evaluation (still training or stopped; dashed in the plots, from their "
+                   f"periodic evaluations):\n\n{pending}")
+        table = table + pending
     markdown.write_text(f"# Results of {csv_path.parent.name}\n\n{table}\n{note}{figures}")
     return table, markdown, plots
 

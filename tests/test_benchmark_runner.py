@@ -206,6 +206,36 @@ def test_report_table_and_plots(tmp_path):
     assert plots[0].name in markdown.read_text()
 
 
+def write_evaluations(path: Path, steps: list, returns: list) -> None:
+    """An EvalCallback's evaluations.npz: one row of episode returns per periodic evaluation."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, timesteps=np.array(steps), results=np.array(returns, dtype=float),
+             ep_lengths=np.ones((len(steps), len(returns[0]))))
+
+
+def test_report_shows_runs_that_have_no_row_yet(tmp_path):
+    """A sweep of runs that take hours is looked at while it runs: a run with a log folder and no row is listed with
+    the steps its periodic evaluations reached and drawn dashed; a finished run's log folder is not."""
+    csv_path = synthetic_results(tmp_path)
+    # HhP seed 0 finished (it has a row); a third HhP seed stopped after two evaluations; a PPO seed has not evaluated
+    write_evaluations(tmp_path / "logs" / "MiniGrid-DoorKey-8x8-v0__hhp__s0" / "evaluations.npz", [500], [[1.0]])
+    write_evaluations(tmp_path / "logs" / "MiniGrid-DoorKey-8x8-v0__hhp__s2" / "hhp" / "run_1" / "evaluations.npz",
+                      [200, 400], [[0.0, 0.0, 0.0, 0.0], [0.9, 0.0, 0.8, 0.0]])
+    (tmp_path / "logs" / "MiniGrid-DoorKey-8x8-v0__ppo__s7").mkdir(parents=True)
+    table, markdown, plots = report.report(csv_path)
+    assert "| MiniGrid-DoorKey-8x8-v0 HhP seed 2 | 400 | 0.50 |" in table
+    assert "| MiniGrid-DoorKey-8x8-v0 PPO seed 7 | 0 | – |" in table
+    assert "seed 0 |" not in table
+    partial = pd.read_csv(tmp_path / "curves" / "MiniGrid-DoorKey-8x8-v0__hhp__s2.partial.csv")
+    assert partial["steps"].tolist() == [200, 400] and partial["success"].tolist() == [0.0, 0.5]
+    assert [plot.name for plot in plots] == ["curves_MiniGrid-DoorKey-8x8-v0.png"]
+    # a sweep with no finished run yet: the unfinished ones alone
+    only = tmp_path / "running"
+    write_evaluations(only / "logs" / "ALE-Pong-v5__ppo__s0" / "evaluations.npz", [100], [[-21.0]])
+    table, _, plots = report.report(only / "results.csv")
+    assert "| ALE-Pong-v5 PPO seed 0 | 100 | 0.00 |" in table and [plot.name for plot in plots] == ["curves_ALE-Pong-v5.png"]
+
+
 def test_report_mean_curve_over_seeds():
     a = pd.DataFrame({"steps": [0, 100], "success": [0.0, 1.0]})
     b = pd.DataFrame({"steps": [0, 100], "success": [0.0, 0.5]})
