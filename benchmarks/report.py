@@ -23,10 +23,10 @@ import numpy as np
 import pandas as pd
 
 try:
-    from benchmarks.run import _curve_from_evaluations
+    from benchmarks.run import Experiment, _curve_from_evaluations
 except ImportError:  # run as a script, python benchmarks/report.py: the repository's root is not on the path
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-    from benchmarks.run import _curve_from_evaluations
+    from benchmarks.run import Experiment, _curve_from_evaluations
 
 #: variant -> name in tables and legends, in the order of tables and plots
 VARIANT_NAMES = {"hhp": "HhP", "dqn": "DQN", "ppo": "PPO", "ppo_rnd": "PPO + RND"}
@@ -128,11 +128,6 @@ def mean_curve(curves: Sequence[pd.DataFrame], column: str = "success") -> Optio
     return pd.DataFrame({"steps": grid, "mean": values.mean(axis=0), "std": values.std(axis=0, ddof=1)})
 
 
-def _run_name(env: str, variant: str, seed: int) -> str:
-    """The runner's name of a run (``benchmarks.run.Experiment.name``)."""
-    return f"{env.replace('/', '-')}__{variant}__s{seed}"
-
-
 def unfinished_runs(results: pd.DataFrame, folder: Path) -> pd.DataFrame:
     """The runs with a log folder (``logs/<run>``) and no row in ``results``: still training, or stopped. The newest
     ``evaluations.npz`` under each log folder becomes ``curves/<run>.partial.csv``.
@@ -140,7 +135,7 @@ def unfinished_runs(results: pd.DataFrame, folder: Path) -> pd.DataFrame:
     :return: one row per run: ``env`` (as in run names: ``/`` written ``-``), ``variant``, ``seed``, ``steps`` (the
         last periodic evaluation's, 0 before any), ``success`` (at that evaluation), ``curve`` (relative to ``folder``)
     """
-    finished = {_run_name(row.env, row.variant, int(row.seed)) for row in results.itertuples()}
+    finished = {Experiment(row.env, row.variant, int(row.seed), int(row.steps)).name for row in results.itertuples()}
     rows = []
     for log in sorted((folder / "logs").glob("*__*__s*")):
         if not log.is_dir() or log.name in finished:

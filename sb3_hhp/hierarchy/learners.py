@@ -189,7 +189,7 @@ class StackedDQN:
         # every sub-goal's parameters as one row of a (capacity, P) tensor: the update is one Adam step on one tensor
         self.params = th.zeros((0, self._offsets[-1]), device=self.device)
         self.target = th.zeros_like(self.params)
-        self._views: dict[tuple, Any] = {}  # views of the stacked tensors (_unflatten, _adam_rows)
+        self._views: dict[Any, Any] = {}  # views of the stacked tensors (_unflatten, _adam_rows)
         self.exp_avg = th.zeros_like(self.params)
         self.exp_avg_sq = th.zeros_like(self.params)
         self.adam_steps = th.zeros(0, dtype=th.float64)
@@ -496,7 +496,7 @@ class StackedDQN:
     def _adam_rows(self) -> tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor]]:
         """Each sub-goal's row of the parameters and of Adam's two moments (views, updated in place), kept until the
         stacked tensors grow."""
-        key = ("adam", id(self.params), len(self.params))
+        key = "adam"  # emptied when the stacked tensors grow
         if key not in self._views:
             self._views[key] = tuple(list(tensor.unbind(0)) for tensor in (self.params, self.exp_avg, self.exp_avg_sq))
         return self._views[key]
