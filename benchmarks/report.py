@@ -23,10 +23,10 @@ import numpy as np
 import pandas as pd
 
 try:
-    from benchmarks.run import Experiment, _curve_from_evaluations
+    from benchmarks.run import Experiment, _curve_from_evaluations, attempt_evaluations
 except ImportError:  # run as a script, python benchmarks/report.py: the repository's root is not on the path
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-    from benchmarks.run import Experiment, _curve_from_evaluations
+    from benchmarks.run import Experiment, _curve_from_evaluations, attempt_evaluations
 
 #: variant -> name in tables and legends, in the order of tables and plots
 VARIANT_NAMES = {"hhp": "HhP", "dqn": "DQN", "ppo": "PPO", "ppo_rnd": "PPO + RND"}
@@ -130,7 +130,7 @@ def mean_curve(curves: Sequence[pd.DataFrame], column: str = "success") -> Optio
 
 def unfinished_runs(results: pd.DataFrame, folder: Path) -> pd.DataFrame:
     """The runs with a log folder (``logs/<run>``) and no row in ``results``: still training, or stopped. The newest
-    ``evaluations.npz`` under each log folder becomes ``curves/<run>.partial.csv``.
+    periodic evaluations under each log folder (every part of a resumed run) become ``curves/<run>.partial.csv``.
 
     :return: one row per run: ``env`` (as in run names: ``/`` written ``-``), ``variant``, ``seed``, ``steps`` (the
         last periodic evaluation's, 0 before any), ``success`` (at that evaluation), ``curve`` (relative to ``folder``)
@@ -141,9 +141,8 @@ def unfinished_runs(results: pd.DataFrame, folder: Path) -> pd.DataFrame:
         if not log.is_dir() or log.name in finished:
             continue
         env, variant, seed = log.name.rsplit("__", 2)
-        evaluations = sorted(log.rglob("evaluations.npz"), key=lambda path: path.stat().st_mtime)
         relative = Path("curves") / f"{log.name}.partial.csv"
-        written = _curve_from_evaluations(evaluations[-1], folder / relative) if evaluations else None
+        written = _curve_from_evaluations(attempt_evaluations(log), folder / relative)
         curve = pd.read_csv(folder / relative) if written else None
         rows.append({"env": env, "variant": variant, "seed": int(seed[1:]),
                      "steps": int(curve["steps"].iloc[-1]) if curve is not None else 0,

@@ -23,7 +23,10 @@ stochastic policy on MiniGrid, as RL Zoo evaluates there), written to ``curves/<
 
 Each experiment runs in a fresh worker process with one torch thread (``--jobs`` at once). The sweep is
 resumable: an experiment whose row is already in ``results.csv`` is skipped, so an interrupted sweep is
-finished by running the same command again; a failed one leaves no row, its log in ``logs/<run>.log``.
+finished by running the same command again; a failed one leaves no row, its log in ``logs/<run>.log``. An HhP
+run writes a checkpoint (model and replays) at every periodic evaluation, and an HhP run that stopped before its
+end goes on from its last checkpoint (``sb3_hhp.train --resume``): a run longer than a session is trained in parts,
+its curve joined from them. The baselines start again.
 Output folder (``--out``, default ``benchmarks/results/<name>``)::
 
     results.csv        one row per env x variant x seed
@@ -60,8 +63,8 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from collections.abc import Callable
 from typing import Any, Optional, Union
 
 import yaml
@@ -277,32 +280,64 @@ def baseline_settings(config: str, variant: str, env_id: str) -> dict[str, Any]:
 # ---------------------------------------------------------------------- one experiment (in a worker process)
 
 
-def _curve_from_evaluations(npz_path: Path, csv_path: Path) -> Optional[str]:
-    """Write the periodic evaluations of an EvalCallback (``evaluations.npz``) as a curve CSV.
+def attempt_evaluations(log_folder: Path) -> list[Path]:
+    """The ``evaluations.npz`` of every attempt of a run, oldest first: one for a run trained in one go, one per part
+    for an HhP run resumed from its checkpoints (each part logs to a run folder of its own)."""
+    return sorted(Path(log_folder).rglob("evaluations.npz"), key=lambda path: path.stat().st_mtime)
 
-    Success at an evaluation is the fraction of its episodes with ``is_success`` when the env reports it,
-    else with a positive return (MiniGrid pays only on reaching the goal), as :func:`sb3_hhp.train.evaluate`.
+
+def _curve_from_evaluations(npz_paths: Union[Path, Sequence[Path]], csv_path: Path) -> Optional[str]:
+    """Write the periodic evaluations of an EvalCallback (``evaluations.npz``), or of the parts of a resumed run
+    (oldest first), as a curve CSV.
+
+    A part that resumed from a checkpoint (its run folder's ``resumed.json``) replaces what the parts before it
+    evaluated after that checkpoint: those steps were trained again. Success at an evaluation is the fraction of its
+    episodes with ``is_success`` when the env reports it, else with a positive return (MiniGrid pays only on
+    reaching the goal), as :func:`sb3_hhp.train.evaluate`.
     """
     import numpy as np
     import pandas as pd
 
-    if not npz_path.is_file():
-        return None
-    data = np.load(npz_path)
-    returns = np.asarray(data["results"], dtype=float)
-    if len(returns) == 0:
-        return None
-    successes = data["successes"] if "successes" in data.files and np.size(data["successes"]) else returns > 0
-    curve = pd.DataFrame(
-        {
+    parts = []
+    for npz_path in [npz_paths] if isinstance(npz_paths, (str, Path)) else list(npz_paths):
+        npz_path = Path(npz_path)
+        if not npz_path.is_file():
+            continue
+        data = np.load(npz_path)
+        returns = np.asarray(data["results"], dtype=float)
+        if len(returns) == 0:
+            continue
+        successes = data["successes"] if "successes" in data.files and np.size(data["successes"]) else returns > 0
+        part = pd.DataFrame({
             "steps": np.asarray(data["timesteps"], dtype=int),
             "success": np.asarray(successes, dtype=float).mean(axis=1),
             "mean_return": returns.mean(axis=1),
-        }
-    )
+        })
+        resumed = npz_path.parent / "resumed.json"
+        if resumed.is_file() and parts:
+            start = int(json.loads(resumed.read_text())["timesteps"])
+            parts = [earlier[earlier["steps"] <= start] for earlier in parts]
+        parts.append(part)
+    if not parts:
+        return None
+    curve = pd.concat(parts, ignore_index=True)
     csv_path.parent.mkdir(parents=True, exist_ok=True)
     curve.to_csv(csv_path, index=False)
     return str(csv_path)
+
+
+def latest_checkpoint(log_folder: Path) -> Optional[Path]:
+    """The run folder holding the latest checkpoint an unfinished HhP run left (``sb3_hhp.train --checkpoint-freq``),
+    None when there is none."""
+    best: Optional[tuple[int, Path]] = None
+    for pointer in Path(log_folder).glob("hhp/*/checkpoint.json"):
+        try:
+            steps = int(json.loads(pointer.read_text())["timesteps"])
+        except (ValueError, KeyError, TypeError):
+            continue
+        if best is None or steps > best[0]:
+            best = (steps, pointer.parent)
+    return best[1] if best else None
 
 
 def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> dict[str, Any]:
@@ -315,7 +350,12 @@ def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> 
         "-f", str(log_folder), "--num-threads", "1",
         "--eval-freq", str(sweep.eval_freq[experiment.env] or -1),
         "--periodic-eval-episodes", str(sweep.curve_episodes),
+        # a checkpoint at every periodic evaluation: a run stopped before its end goes on from the last one
+        "--checkpoint-freq", str(sweep.eval_freq[experiment.env] or max(experiment.steps // 10, 1)),
     ]
+    resume = latest_checkpoint(log_folder)
+    if resume is not None:
+        command += ["--resume", str(resume)]
     if sweep.hhp_conf:
         command += ["--conf-file", sweep.hhp_conf]
     command += list(sweep.hhp_args)
@@ -330,7 +370,6 @@ def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> 
     return {
         "summary": summary,
         "summary_path": summary_path,
-        "evaluations": Path(summary["log_path"]) / "evaluations.npz",
         "labels_used": summary["queries_used"],
     }
 
@@ -397,7 +436,6 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
     return {
         "summary": summary,
         "summary_path": summary_path,
-        "evaluations": log_folder / "evaluations.npz",
         "labels_used": None,
     }
 
@@ -412,10 +450,12 @@ def run_experiment(experiment: Experiment, sweep: Sweep, out: Union[str, Path]) 
     """
     out = Path(out)
     log_folder = out / "logs" / experiment.name
-    shutil.rmtree(log_folder, ignore_errors=True)  # a failed earlier attempt's files
-    log_folder.mkdir(parents=True)
+    resumes = experiment.variant == "hhp" and latest_checkpoint(log_folder) is not None
+    if not resumes:
+        shutil.rmtree(log_folder, ignore_errors=True)  # a failed earlier attempt's files
+    log_folder.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    with open(out / "logs" / f"{experiment.name}.log", "w") as log_file:
+    with open(out / "logs" / f"{experiment.name}.log", "a" if resumes else "w") as log_file:
         if experiment.variant == "hhp":
             result = _run_hhp(experiment, sweep, out, log_file)
         else:
@@ -423,7 +463,7 @@ def run_experiment(experiment: Experiment, sweep: Sweep, out: Union[str, Path]) 
                 result = _run_baseline(experiment, sweep, out)
     wall_seconds = time.perf_counter() - start
     summary = result["summary"]
-    curve = _curve_from_evaluations(result["evaluations"], out / "curves" / f"{experiment.name}.csv")
+    curve = _curve_from_evaluations(attempt_evaluations(log_folder), out / "curves" / f"{experiment.name}.csv")
     return {
         "env": experiment.env,
         "variant": experiment.variant,

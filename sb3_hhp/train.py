@@ -24,6 +24,11 @@ sub-goals found, fps) is printed and, with ``--summary-json``, written as JSON. 
 the one RL Zoo just saved to ``<log folder>/hhp/<ENV>_<run>/<ENV>.zip``, taken from the experiment
 manager in memory.
 
+``--checkpoint-freq N`` saves the model and its replays (:meth:`HhP.save_replay_buffer`) every N primitive steps in
+the run folder (``checkpoints/<steps>/``, ``checkpoint.json``), in place of the last; ``--resume RUN_FOLDER`` goes
+on from that checkpoint up to ``-n`` steps, on that run's preference database (RL Zoo's ``-i`` starts the step
+count again and a new database).
+
 ``--label-server`` serves the labeling page (:class:`~sb3_hhp.label.server.LabelServer`) on 127.0.0.1
 beside training, on the run's preference database, and implies ``--oracle web``.
 """
@@ -31,12 +36,14 @@ beside training, on the run's preference database, and implies ``--oracle web``.
 import argparse
 import contextlib
 import difflib
+import functools
 import importlib
 import inspect
 import io
 import json
 import os
 import re
+import shutil
 import sys
 import time
 import warnings
@@ -55,6 +62,7 @@ ALGO_NAME = "hhp"
 EVAL_SEED_OFFSET = 10_000
 #: the file name of the preference database inside the run folder
 PREFERENCE_DB_NAME = "preferences.sqlite"
+CHECKPOINT_FILE = "checkpoint.json"  # the run folder's latest checkpoint (--checkpoint-freq, --resume)
 #: keys RL Zoo reads itself (they never reach HhP's constructor)
 ZOO_KEYS = frozenset(
     {"n_timesteps", "policy", "env_wrapper", "n_envs", "normalize", "frame_stack", "callback", "vec_env_wrapper",
@@ -236,6 +244,80 @@ def _replaced(module: Any, name: str, value: Any) -> Iterator[None]:
         setattr(module, name, original)
 
 
+def _checkpoint_callback_class() -> type:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class LatestCheckpoint(BaseCallback):
+        """Every ``save_freq`` primitive steps (and at the end of training), the model (:meth:`HhP.save`) and its
+        replays (:meth:`HhP.save_replay_buffer`) in ``<run folder>/checkpoints/<steps>/``, then ``checkpoint.json``
+        pointing at them, then the older checkpoints removed: a run stopped at any moment keeps a complete
+        checkpoint, which ``--resume`` goes on from.
+
+        :param save_freq: primitive steps between checkpoints (counted on the model's step count, so a resumed run
+            keeps the same checkpoint steps)
+        :param save_path: the run folder
+        """
+
+        def __init__(self, save_freq: int, save_path: str, verbose: int = 0) -> None:
+            super().__init__(verbose)
+            self.save_freq, self.save_path = int(save_freq), Path(save_path)
+            self.saved_at = -1
+
+        def _init_callback(self) -> None:
+            self.saved_at = self.model.num_timesteps  # a resumed run's checkpoint is its start
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps // self.save_freq > max(self.saved_at, 0) // self.save_freq:
+                self.save()
+            return True
+
+        def _on_training_end(self) -> None:
+            if self.num_timesteps != self.saved_at:
+                self.save()
+
+        def save(self) -> None:
+            steps = int(self.model.num_timesteps)
+            folder = self.save_path / "checkpoints" / str(steps)
+            folder.mkdir(parents=True, exist_ok=True)
+            self.model.save(folder / "model.zip")
+            self.model.save_replay_buffer(folder / "replay.pkl")
+            pointer = self.save_path / CHECKPOINT_FILE
+            temporary = pointer.with_suffix(".json.tmp")
+            temporary.write_text(json.dumps({"timesteps": steps, "model": f"checkpoints/{steps}/model.zip",
+                                             "replay": f"checkpoints/{steps}/replay.pkl"}) + "\n")
+            os.replace(temporary, pointer)
+            for older in (self.save_path / "checkpoints").iterdir():
+                if older.name != str(steps):
+                    shutil.rmtree(older, ignore_errors=True)
+            self.saved_at = steps
+            if self.verbose:
+                print(f"Checkpoint at {steps} steps: {folder}")
+
+    return LatestCheckpoint
+
+
+def read_checkpoint(run_folder: str) -> dict[str, Any]:
+    """The latest checkpoint of a run folder (``checkpoint.json``): its step count and the paths of the model and the
+    replays. A clear error when there is none or its files are gone."""
+    folder = Path(run_folder)
+    if not folder.is_dir():
+        raise ConfigError(f"--resume {run_folder}: no such run folder (e.g. logs/hhp/MiniGrid-DoorKey-8x8-v0_1)")
+    pointer = folder / CHECKPOINT_FILE
+    if not pointer.is_file():
+        raise ConfigError(f"--resume {run_folder}: the folder has no {CHECKPOINT_FILE}; a run writes checkpoints "
+                          "when trained with --checkpoint-freq N")
+    try:
+        checkpoint = json.loads(pointer.read_text())
+        checkpoint = {"timesteps": int(checkpoint["timesteps"]), "model": str(folder / checkpoint["model"]),
+                      "replay": str(folder / checkpoint["replay"]), "run_folder": str(folder)}
+    except (ValueError, KeyError, TypeError) as error:
+        raise ConfigError(f"--resume {run_folder}: {pointer} is damaged ({error})") from error
+    for what in ("model", "replay"):
+        if not os.path.isfile(checkpoint[what]):
+            raise ConfigError(f"--resume {run_folder}: the checkpoint's {what} {checkpoint[what]} is missing")
+    return checkpoint
+
+
 def _experiment_manager_class() -> type:
     from rl_zoo3.exp_manager import ExperimentManager
 
@@ -250,6 +332,10 @@ def _experiment_manager_class() -> type:
             self.train_seconds = 0.0
             self.label_server: Any = None
             self.config_entry = ""
+            self.checkpoint = read_checkpoint(hhp_options.resume) if hhp_options.resume else None
+            self.start_timesteps = 0
+            if self.checkpoint is not None:  # RL Zoo's own way of going on from a saved model, by its name
+                self.trained_agent, self.continue_training = self.checkpoint["model"], True
 
         def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
             if not self.config.endswith((".yml", ".yaml")):  # a .py file or a module: RL Zoo reads it
@@ -282,7 +368,9 @@ def _experiment_manager_class() -> type:
                 hyperparams["oracle"] = options.oracle
             # every run keeps its answers in a durable store; optuna trials would share one, so they get none
             if "preference_db" not in hyperparams and not (self.optimize_hyperparameters and not options.label_server):
-                hyperparams["preference_db"] = os.path.join(self.save_path, PREFERENCE_DB_NAME)
+                # a resumed run goes on with the answers of the run it resumes
+                run_folder = self.checkpoint["run_folder"] if self.checkpoint is not None else self.save_path
+                hyperparams["preference_db"] = os.path.join(run_folder, PREFERENCE_DB_NAME)
             validate_hyperparams(hyperparams, f"{self.config} [{self.config_entry}]")
             self._check_values(hyperparams)
             if self.n_timesteps > 0:  # -n overrides the file: the dump (config.yml) says what was trained
@@ -326,9 +414,44 @@ def _experiment_manager_class() -> type:
                 print(f"Labeling page: {self.label_server.url} (answers go to {model.store.path})", flush=True)
             return results
 
+        def create_callbacks(self) -> None:
+            super().create_callbacks()
+            if self.hhp_options.checkpoint_freq > 0:
+                self.callbacks.append(_checkpoint_callback_class()(self.hhp_options.checkpoint_freq, self.save_path))
+
+        def _load_pretrained_agent(self, hyperparams: dict[str, Any], env: Any) -> Any:
+            """The checkpoint of ``--resume``: the model as it was saved (its own hyperparameters), with this run's
+            oracle and preference database, and its replays."""
+            from sb3_hhp import HhP
+
+            checkpoint = self.checkpoint
+            print(f"Resuming {checkpoint['run_folder']} at {checkpoint['timesteps']} steps")
+            os.makedirs(self.save_path, exist_ok=True)  # where this part's evaluations begin (benchmarks join the parts)
+            with open(os.path.join(self.save_path, "resumed.json"), "w") as file:
+                json.dump({"run_folder": checkpoint["run_folder"], "timesteps": checkpoint["timesteps"]}, file)
+            model = HhP.load(checkpoint["model"], env=env, seed=self.seed, device=self.device, verbose=self.verbose,
+                             tensorboard_log=self.tensorboard_log, oracle=hyperparams["oracle"],
+                             preference_db=hyperparams.get("preference_db"))
+            model.load_replay_buffer(checkpoint["replay"])
+            return model
+
         def learn(self, model: Any) -> None:
             start = time.perf_counter()
-            super().learn(model)
+            self.start_timesteps = int(model.num_timesteps)
+            if self.checkpoint is None:
+                super().learn(model)
+            else:  # -n is the run's whole budget: train what is left, the step count going on
+                budget = self.n_timesteps
+                self.n_timesteps = max(0, budget - model.num_timesteps)
+                model.learn = functools.partial(type(model).learn, model, reset_num_timesteps=False)
+                try:
+                    if self.n_timesteps > 0:
+                        super().learn(model)
+                    else:
+                        print(f"The checkpoint is at {model.num_timesteps} steps, the budget (-n) {budget}: nothing to train")
+                finally:
+                    del model.learn
+                    self.n_timesteps = budget
             self.train_seconds = time.perf_counter() - start
 
         def save_trained_model(self, model: Any) -> None:
@@ -480,6 +603,17 @@ def _parser() -> argparse.ArgumentParser:
         help="episodes of each periodic evaluation (RL Zoo's --eval-episodes, default 5)",
     )
     parser.add_argument(
+        "--checkpoint-freq", type=int, default=0,
+        help="every N primitive steps and at the end, save the model and its replays in the run folder (checkpoints/, "
+             "checkpoint.json), replacing the last checkpoint: what --resume goes on from (default 0: none)",
+    )
+    parser.add_argument(
+        "--resume", default=None, metavar="RUN_FOLDER",
+        help="go on training a run from its latest checkpoint (e.g. logs/hhp/MiniGrid-DoorKey-8x8-v0_1): the step "
+             "count goes on up to -n, the answers go to that run's preference database; the logs of this part "
+             "go to a new run folder",
+    )
+    parser.add_argument(
         "--label-server", action="store_true", help="serve the labeling page beside training (implies --oracle web)"
     )
     parser.add_argument(
@@ -585,6 +719,10 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
         raise ConfigError(f"Unknown oracle {options.oracle!r}: use one of {', '.join(ORACLE_NAMES)}")
     if options.eval_episodes < 0:
         raise ConfigError(f"--eval-episodes must be >= 0, got {options.eval_episodes}")
+    if options.checkpoint_freq < 0:
+        raise ConfigError(f"--checkpoint-freq must be >= 0 (0: no checkpoints), got {options.checkpoint_freq}")
+    if options.resume is not None:
+        read_checkpoint(options.resume)  # refused before anything is built
     if not 0 <= options.label_port <= 65535:
         raise ConfigError(f"--label-port must be in [0, 65535], got {options.label_port}")
     zoo = _zoo_peek(zoo_argv)
@@ -629,6 +767,10 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
             name = "deterministic" if mode else "stochastic"
             summary[f"success_rate_{name}"] = float(np.mean(result["successes"])) if len(result["successes"]) else None
             summary[f"mean_return_{name}"] = float(np.mean(result["returns"])) if len(result["returns"]) else None
+    if manager.checkpoint is not None:
+        trained = model.num_timesteps - manager.start_timesteps
+        summary["fps"] = round(trained / manager.train_seconds, 1) if manager.train_seconds > 0 else None
+        summary["resumed_from"] = {"run_folder": manager.checkpoint["run_folder"], "timesteps": manager.start_timesteps}
     summary["log_path"] = manager.save_path
     summary["model_path"] = os.path.join(manager.save_path, f"{manager.env_name}.zip")
     summary["config"] = manager.config

@@ -1,5 +1,6 @@
 """Tests of the benchmark runner (python -m benchmarks.run) and its report (benchmarks/report.py), without training."""
 
+import os
 import textwrap
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,9 @@ from benchmarks.run import (
     Sweep,
     SweepError,
     _curve_from_evaluations,
+    _run_hhp,
+    attempt_evaluations,
+    latest_checkpoint,
     load_sweep,
     main,
     add_result,
@@ -211,6 +215,45 @@ def write_evaluations(path: Path, steps: list, returns: list) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, timesteps=np.array(steps), results=np.array(returns, dtype=float),
              ep_lengths=np.ones((len(steps), len(returns[0]))))
+
+
+def test_a_stopped_hhp_run_goes_on_from_its_last_checkpoint(tmp_path, monkeypatch):
+    """An HhP run longer than a session is trained in parts: the runner passes the newest checkpoint to --resume, keeps
+    the log folder, and joins the parts' periodic evaluations, a part's replacing what the part before it evaluated
+    after its checkpoint (those steps were trained again)."""
+    sweep = load_sweep(EXPERIMENTS / "minigrid_tasks.yml", check_envs=False)
+    experiment = Experiment("MiniGrid-DoorKey-16x16-v0", "hhp", 0, 2_000_000)
+    log = tmp_path / "logs" / experiment.name
+    # part 1 evaluated at 200k, 400k and 600k, its last checkpoint at 400k (stopped while writing the next one)
+    write_evaluations(log / "hhp" / "MiniGrid-DoorKey-16x16-v0_1" / "evaluations.npz", [200_000, 400_000, 600_000],
+                      [[0.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    (log / "hhp" / "MiniGrid-DoorKey-16x16-v0_1" / "checkpoint.json").write_text('{"timesteps": 400000}')
+    assert latest_checkpoint(log) == log / "hhp" / "MiniGrid-DoorKey-16x16-v0_1"
+    assert latest_checkpoint(tmp_path / "nothing") is None
+    # part 2 resumed there and evaluated at 600k again (a later file), with its own checkpoint further on
+    part2 = log / "hhp" / "MiniGrid-DoorKey-16x16-v0_2"
+    write_evaluations(part2 / "evaluations.npz", [600_000], [[0.0, 0.0]])
+    (part2 / "resumed.json").write_text('{"timesteps": 400000}')
+    (part2 / "checkpoint.json").write_text('{"timesteps": 600000}')
+    os.utime(part2 / "evaluations.npz", (1e10, 1e10))
+    assert latest_checkpoint(log) == part2
+    parts = attempt_evaluations(log)
+    assert [path.parent.name for path in parts] == ["MiniGrid-DoorKey-16x16-v0_1", "MiniGrid-DoorKey-16x16-v0_2"]
+    curve = pd.read_csv(_curve_from_evaluations(parts, tmp_path / "curve.csv"))
+    assert curve["steps"].tolist() == [200_000, 400_000, 600_000]
+    assert curve["success"].tolist() == [0.0, 0.5, 0.0]  # part 1's 600k evaluation is replaced by part 2's
+    # the training command the runner starts: a checkpoint at every periodic evaluation, and the newest one resumed
+    commands = []
+    monkeypatch.setattr("subprocess.run", lambda command, **kwargs: commands.append(command) or FailedRun())
+    with open(tmp_path / "run.log", "w") as log_file, pytest.raises(RuntimeError, match="status 1"):
+        _run_hhp(experiment, sweep, tmp_path, log_file)
+    command = commands[0]
+    assert command[command.index("--checkpoint-freq") + 1] == "200000"
+    assert command[command.index("--resume") + 1] == str(part2)
+
+
+class FailedRun:
+    returncode = 1
 
 
 def test_report_shows_runs_that_have_no_row_yet(tmp_path):

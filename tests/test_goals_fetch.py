@@ -141,7 +141,16 @@ def test_hhp_trains_ddpg_subpolicies_on_fetch_reach_and_round_trips(tmp_path) ->
     mean_return, _ = evaluate_policy(model, eval_env, n_eval_episodes=2, deterministic=True)
     assert -50.0 <= mean_return <= 0.0  # Fetch pays -1 a step until the target is reached, 50 steps an episode
     model.save(tmp_path / "fetch")
+    model.save_replay_buffer(tmp_path / "fetch_replay")
     loaded = HhP.load(tmp_path / "fetch", env=gym.make(REACH))
+    loaded.load_replay_buffer(tmp_path / "fetch_replay.pkl")  # R_H and every DDPG sub-goal's own buffer
+    for sub, sub_loaded in zip(model.subpolicies.subpolicies, loaded.subpolicies.subpolicies):
+        buffer, buffer_loaded = sub.model.replay_buffer, sub_loaded.model.replay_buffer
+        assert buffer_loaded.pos == buffer.pos and buffer_loaded.full == buffer.full
+        np.testing.assert_array_equal(buffer_loaded.observations[: buffer.pos], buffer.observations[: buffer.pos])
+        np.testing.assert_array_equal(buffer_loaded.rewards[: buffer.pos], buffer.rewards[: buffer.pos])
+    assert model.subpolicies.subpolicies[0].model.replay_buffer.pos > 0
+    assert loaded.replay_buffer.pos == model.replay_buffer.pos
     obs, _ = eval_env.reset(seed=7)
     for _ in range(5):
         action, _ = model.predict(obs, deterministic=True)

@@ -1,5 +1,6 @@
 """Proportional prioritized experience replay (Schaul et al., 2016) as an SB3 replay buffer."""
 
+from collections.abc import Collection
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -278,3 +279,51 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         returns = (rewards * self.gamma ** steps[None, :] * mask).sum(axis=1, keepdims=True)
         discounts = (self.gamma ** (last + 1)).astype(np.float32).reshape(-1, 1)
         return returns, rows[np.arange(len(rows)), last], discounts
+
+
+# ---------------------------------------------------------------------- replay buffers in a file
+
+
+def buffer_state(buffer: Any, capacity: int, filled: int, skip: Collection[str] = ("device",)) -> dict[str, Any]:
+    """What a replay buffer holds, for a file: its arrays of ``capacity`` rows cut to the ``filled`` rows in use (a
+    buffer allocated for 500,000 sub-goal choices writes the ones it has stored), every other attribute as it is,
+    but those of ``skip`` (what the live buffer rebuilds: functions, devices)."""
+    attributes = {}
+    for name, value in vars(buffer).items():
+        if name in skip:
+            continue
+        if isinstance(value, np.ndarray) and value.ndim > 0 and value.shape[0] == capacity:
+            value = value[:filled]
+        attributes[name] = value
+    return {"class": type(buffer).__name__, "capacity": int(capacity), "filled": int(filled), "attributes": attributes}
+
+
+def load_buffer_state(buffer: Any, state: dict[str, Any], capacity: int, what: str,
+                      progress: Collection[str] = ("pos", "full")) -> None:
+    """Fill the live ``buffer`` with a :func:`buffer_state`: its rows and the rest of what it stored (priorities, draws'
+    generator, ...). Settings (numbers, strings, shapes, spaces) must be the live buffer's own, but ``progress`` (where
+    it writes next): a file saved with another buffer size, number of envs or n-step length is refused, naming the
+    setting. Rows past the stored ones are never read."""
+    if not isinstance(state, dict) or "attributes" not in state:
+        raise ValueError(f"{what}: the file holds no saved replay buffer")
+    if state.get("class") != type(buffer).__name__:
+        raise ValueError(f"{what}: the file holds a {state.get('class')}, the model a {type(buffer).__name__}")
+    if state["capacity"] != capacity:
+        raise ValueError(f"{what}: the file's buffer holds {state['capacity']} rows, the model's {capacity}: build the "
+                         "model with the buffer size it was saved with")
+    live = vars(buffer)
+    for name, value in state["attributes"].items():
+        current = live.get(name)
+        if name not in live:
+            raise ValueError(f"{what}: the file's buffer has {name!r}, which this version's {type(buffer).__name__} has not")
+        if isinstance(value, np.ndarray) and isinstance(current, np.ndarray) and current.ndim > 0 and current.shape[0] == capacity:
+            if current.shape[1:] != value.shape[1:] or current.dtype != value.dtype:
+                raise ValueError(f"{what}: the file stores {name} as {value.shape[1:]} {value.dtype}, the model as "
+                                 f"{current.shape[1:]} {current.dtype} (another observation space or number of envs)")
+            current[: len(value)] = value
+        elif name not in progress and isinstance(current, (int, float, str, tuple, np.number, spaces.Space)):
+            if not current == value:
+                raise ValueError(f"{what}: the file's buffer was saved with {name}={value!r}, the model's has "
+                                 f"{current!r}: load it into a model built with the same settings")
+        else:
+            live[name] = value

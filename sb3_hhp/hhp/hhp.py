@@ -25,6 +25,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList, Conve
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
+from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
 from stable_baselines3.common.utils import get_device, polyak_update
 from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.monitor import Monitor
@@ -33,6 +34,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecTransposeIm
 
 from sb3_hhp.curiosity.rnd import RND
 from sb3_hhp.discovery.csd import SubgoalDiscovery
+from sb3_hhp.dqn.buffers import buffer_state, load_buffer_state
 from sb3_hhp.dqn.dqn import DoubleDQN
 from sb3_hhp.goals import GoalSpace, make_goal_space, wrap_env
 from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, GridCNN, MlpPolicy, MultiInputPolicy
@@ -57,6 +59,7 @@ SUBGOAL_LEARNERS = {"heads": SharedHeadsDQN, "stacked": StackedDQN}
 
 #: the zip member of a saved model that holds the components beyond the meta-controller
 COMPONENTS_FILE = "hhp_components.pt"  # not .pth: SB3 loads every .pth member as weights only
+REPLAY_FORMAT = "sb3_hhp.HhP.replay"  # the file of HhP.save_replay_buffer
 
 
 def _continuous_actions(env: Union[GymEnv, str]) -> bool:
@@ -954,6 +957,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             "store", "subgoal_table", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
             "last_confidences", "consumed_query_ids", "initial_subgoals", "_asked_signatures", "_mask_cache", "_present_cache",
             "_bonus_key", "_bonus_cache", "_bonus_valid", "_unscored",
+            *(["learn"] if "learn" in vars(self) else []),  # a bound learn (sb3_hhp.train --resume) is no data of the model
         ]
 
     def components_state(self) -> dict[str, Any]:
@@ -1046,6 +1050,39 @@ class HhP(BetweenEpisodes, DoubleDQN):
         if env is not None:
             model.set_env(env, force_reset=force_reset)
         return model
+
+    def save_replay_buffer(self, path: Union[str, pathlib.Path, io.BufferedIOBase]) -> None:
+        """Save the meta-controller's replay R_H and the sub-goal learners' replay in one pickle file (SB3's saves
+        R_H alone): with :meth:`save`, what training needs to go on where it stopped (RL Zoo's ``--save-replay-buffer``,
+        ``sb3_hhp.train --checkpoint-freq``). Only the rows in use are written."""
+        assert self.replay_buffer is not None, "The replay buffer is not defined"
+        meta = self.replay_buffer
+        save_to_pkl(path, {
+            "format": REPLAY_FORMAT,
+            "meta": buffer_state(meta, meta.buffer_size, meta.buffer_size if meta.full else meta.pos),
+            "subgoal_learners": self.subpolicies.replay_state(),
+        }, self.verbose)
+
+    def load_replay_buffer(self, path: Union[str, pathlib.Path, io.BufferedIOBase], truncate_last_traj: bool = True) -> None:
+        """Load what :meth:`save_replay_buffer` saved into this model's replays (built with the same settings and
+        sub-goals: load the model saved with it first). A file of SB3's ``save_replay_buffer`` (R_H alone) is
+        taken as R_H, the sub-goal learners' replay left as it is."""
+        try:
+            data = load_from_pkl(path, self.verbose)
+        except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, ValueError) as error:
+            raise ValueError(f"{path} cannot be read as a saved replay ({type(error).__name__}: {error}): a damaged or "
+                             "truncated file? Save it again with HhP.save_replay_buffer") from error
+        if isinstance(data, ReplayBuffer):
+            super().load_replay_buffer(path, truncate_last_traj)  # SB3's file: R_H only
+            self._bonus_key = None
+            return
+        if not isinstance(data, dict) or data.get("format") != REPLAY_FORMAT:
+            raise ValueError(f"{path} is not a replay saved by HhP.save_replay_buffer (nor an SB3 replay buffer)")
+        self.subpolicies.load_replay_state(data["subgoal_learners"])
+        meta = self.replay_buffer
+        load_buffer_state(meta, data["meta"], meta.buffer_size, "the meta-controller's replay R_H")
+        meta.device = self.device
+        self._bonus_key = None  # the cached preference bonuses belonged to the rows held before
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """Attach (new) envs: an env, an env id or a VecEnv of any number of envs, whose sub-goals are the model's."""

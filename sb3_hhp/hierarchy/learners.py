@@ -22,6 +22,7 @@ from stable_baselines3.dqn.policies import CnnPolicy, DQNPolicy, MlpPolicy
 from torch.func import functional_call, vmap
 from torch.nn import functional as F
 
+from sb3_hhp.dqn.buffers import buffer_state, load_buffer_state
 from sb3_hhp.hierarchy.replay import SharedReplay
 
 #: subpolicy keyword arguments the stacked learner reads (SB3 DQN's names), and those it accepts and ignores
@@ -539,6 +540,20 @@ class StackedDQN:
             "adam_steps": self.adam_steps[:n].clone(),
             **self._counters(),
         }
+
+    def replay_state(self) -> dict[str, Any]:
+        """The shared replay's stored transitions, priorities and sub-goal keys, for a file (:meth:`HhP.save_replay_buffer`)."""
+        return {"format": "sb3_hhp.SharedReplay", "goal_keys": list(self.replay.goal_keys),
+                "replay": buffer_state(self.replay, self.replay.capacity, self.replay.size(), skip=("_achieved",))}
+
+    def load_replay_state(self, state: Any) -> None:
+        """Refill the shared replay from :meth:`replay_state` (the learners' sub-goals must be the file's)."""
+        if not isinstance(state, dict) or state.get("format") != "sb3_hhp.SharedReplay":
+            raise ValueError("the file holds no shared replay of stacked sub-goal learners")
+        if list(state["goal_keys"]) != list(self.replay.goal_keys):
+            raise ValueError(f"the file's replay belongs to a model with {len(state['goal_keys'])} sub-goals, this one "
+                             f"has {len(self.replay.goal_keys)} (or others): load the replay saved with this model")
+        load_buffer_state(self.replay, state["replay"], self.replay.capacity, "the sub-goal learners' replay")
 
     def load_state_dict(self, state: Any) -> None:
         if not isinstance(state, dict) or state.get("format") != "sb3_hhp.StackedDQN":

@@ -20,6 +20,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.utils import LinearSchedule
 from stable_baselines3.common.vec_env import VecTransposeImage
 
+from sb3_hhp.dqn.buffers import buffer_state, load_buffer_state
 from sb3_hhp.dqn.dqn import DoubleDQN
 
 
@@ -320,6 +321,24 @@ class PerGoalLearners:
 
     def state_dict(self) -> dict[str, Any]:
         return {"format": "sb3_hhp.PerGoalLearners", "goal_keys": list(self.goal_keys), "subpolicies": self.subpolicies.state_dict()}
+
+    def replay_state(self) -> dict[str, Any]:
+        """Every subpolicy's SB3 replay buffer, the rows in use, for a file (:meth:`HhP.save_replay_buffer`)."""
+        buffers = [policy.model.replay_buffer for policy in self.subpolicies.policies]
+        return {"format": "sb3_hhp.PerGoalReplays", "goal_keys": list(self.goal_keys),
+                "replays": [buffer_state(buffer, buffer.buffer_size, buffer.buffer_size if buffer.full else buffer.pos)
+                            for buffer in buffers]}
+
+    def load_replay_state(self, state: Any) -> None:
+        """Refill every subpolicy's replay buffer from :meth:`replay_state` (the sub-goals must be the file's)."""
+        if not isinstance(state, dict) or state.get("format") != "sb3_hhp.PerGoalReplays":
+            raise ValueError("the file holds no replay buffers of per-sub-goal learners")
+        if list(state["goal_keys"]) != list(self.goal_keys):
+            raise ValueError(f"the file's replays belong to a model with {len(state['goal_keys'])} sub-goals, this one "
+                             f"has {len(self.goal_keys)} (or others): load the replay saved with this model")
+        for goal, (policy, saved) in enumerate(zip(self.subpolicies.policies, state["replays"])):
+            buffer = policy.model.replay_buffer
+            load_buffer_state(buffer, saved, buffer.buffer_size, f"sub-goal {goal}'s replay buffer")
 
     def load_state_dict(self, state: Any) -> None:
         if isinstance(state, list):  # saved before the learners had an interface of their own

@@ -1,0 +1,129 @@
+"""Going on with training where it stopped: HhP's replays in a file (``save_replay_buffer`` /
+``load_replay_buffer``) and ``python -m sb3_hhp.train --checkpoint-freq`` / ``--resume``."""
+
+import json
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.save_util import save_to_pkl
+
+from sb3_hhp import HhP
+from sb3_hhp.goals import wrap_env
+
+ENV = "MiniGrid-DoorKey-5x5-v0"
+
+
+def make_model(seed: int = 0, **kwargs) -> HhP:
+    env = make_vec_env(ENV, n_envs=2, wrapper_class=wrap_env, seed=seed)
+    return HhP("MlpPolicy", env, seed=seed, oracle="scripted", subgoal_learner="stacked", learning_starts=100,
+               **{"buffer_size": 20_000, **kwargs})
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A model trained 2,500 steps, saved with its replays."""
+    folder = tmp_path_factory.mktemp("saved")
+    model = make_model()
+    model.learn(2_500)
+    model.save(folder / "model.zip")
+    model.save_replay_buffer(folder / "replay.pkl")
+    return model, folder
+
+
+def test_replays_are_saved_and_loaded_whole(trained):
+    model, folder = trained
+    loaded = HhP.load(folder / "model.zip", env=make_vec_env(ENV, n_envs=2, wrapper_class=wrap_env, seed=1))
+    loaded.load_replay_buffer(folder / "replay.pkl")
+    shared, shared_loaded = model.subpolicies.replay, loaded.subpolicies.replay
+    rows = shared.size()
+    assert rows > 1000 and shared_loaded.size() == rows and shared_loaded.full == shared.full
+    for name in ("observations", "next_observations", "actions", "key_ids", "terminated", "truncated", "gave_up",
+                 "acting", "intrinsic"):
+        np.testing.assert_array_equal(getattr(shared_loaded, name)[:rows], getattr(shared, name)[:rows], err_msg=name)
+    np.testing.assert_array_equal(shared_loaded.trees._sum, shared.trees._sum)  # every sub-goal's priorities
+    assert shared_loaded.goal_keys == shared.goal_keys and shared_loaded.keys == shared.keys
+    # the next draws are the ones the saved model would have made
+    goals = np.arange(len(shared.goal_keys))
+    np.testing.assert_array_equal(shared_loaded.sample(goals, 16).leaves, shared.sample(goals, 16).leaves)
+    meta, meta_loaded = model.replay_buffer, loaded.replay_buffer
+    assert meta.pos > 100 and meta_loaded.pos == meta.pos
+    np.testing.assert_array_equal(meta_loaded.observations[: meta.pos], meta.observations[: meta.pos])
+    np.testing.assert_array_equal(meta_loaded.rewards[: meta.pos], meta.rewards[: meta.pos])
+    np.testing.assert_array_equal(meta_loaded.tree._sum, meta.tree._sum)  # the priorities
+    # only the rows in use are written: R_H is allocated for 20,000 choices and holds a few hundred
+    with open(folder / "replay.pkl", "rb") as file:
+        saved = pickle.load(file)
+    assert len(saved["meta"]["attributes"]["observations"]) == meta.pos < meta.buffer_size
+    assert len(saved["subgoal_learners"]["replay"]["attributes"]["observations"]) == rows < shared.capacity
+    loaded.learn(300, reset_num_timesteps=False)  # and training goes on from them
+    assert loaded.num_timesteps >= model.num_timesteps + 300
+
+
+def test_load_replay_buffer_refuses_what_does_not_fit(trained, tmp_path):
+    model, folder = trained
+    fresh = make_model()  # no sub-goals yet: the file's replay belongs to another model
+    with pytest.raises(ValueError, match="load the replay saved with this model"):
+        fresh.load_replay_buffer(folder / "replay.pkl")
+    loaded = HhP.load(folder / "model.zip", env=make_vec_env(ENV, n_envs=2, wrapper_class=wrap_env), buffer_size=30_000)
+    with pytest.raises(ValueError, match="buffer size it was saved with"):
+        loaded.load_replay_buffer(folder / "replay.pkl")
+    save_to_pkl(tmp_path / "other.pkl", {"something": 1})
+    with pytest.raises(ValueError, match="not a replay saved by HhP.save_replay_buffer"):
+        model.load_replay_buffer(tmp_path / "other.pkl")
+    (tmp_path / "damaged.pkl").write_bytes((folder / "replay.pkl").read_bytes()[:5000])
+    with pytest.raises(ValueError, match="damaged or truncated"):
+        model.load_replay_buffer(tmp_path / "damaged.pkl")
+
+
+def test_an_sb3_replay_file_is_taken_as_the_meta_replay(trained, tmp_path):
+    model, folder = trained
+    save_to_pkl(tmp_path / "meta.pkl", model.replay_buffer)  # what SB3's own save_replay_buffer writes
+    loaded = HhP.load(folder / "model.zip", env=make_vec_env(ENV, n_envs=2, wrapper_class=wrap_env))
+    loaded.load_replay_buffer(tmp_path / "meta.pkl")
+    assert loaded.replay_buffer.pos == model.replay_buffer.pos
+    assert loaded.subpolicies.replay.size() == 0  # the sub-goal learners' replay is not in such a file
+
+
+def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    return subprocess.run([sys.executable, "-m", "sb3_hhp.train", *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=600)
+
+
+@pytest.mark.slow
+def test_a_run_goes_on_from_its_checkpoint(tmp_path):
+    """A run stopped at its checkpoint goes on with --resume: the step count goes on to -n, answers go to the same
+    preference database and no question is asked twice, the evaluations go on from the checkpoint's steps."""
+    common = ["--env", ENV, "--oracle", "scripted", "--seed", "3", "--eval-episodes", "2", "--num-threads", "1",
+              "--verbose", "0", "-f", str(tmp_path / "logs"), "--eval-freq", "1000", "--periodic-eval-episodes", "1",
+              "--checkpoint-freq", "1000", "--hyperparams", "n_envs:2"]
+    first = _cli(*common, "-n", "2000", "--summary-json", str(tmp_path / "first.json"), cwd=tmp_path)
+    assert first.returncode == 0, first.stderr[-3000:]
+    summary1 = json.loads((tmp_path / "first.json").read_text())
+    run1 = Path(summary1["log_path"])
+    checkpoint = json.loads((run1 / "checkpoint.json").read_text())
+    assert checkpoint["timesteps"] == summary1["total_timesteps"]  # written at the end of training too
+    assert [path.name for path in (run1 / "checkpoints").iterdir()] == [str(checkpoint["timesteps"])]  # the last only
+
+    second = _cli(*common, "-n", "4000", "--resume", str(run1), "--summary-json", str(tmp_path / "second.json"),
+                  cwd=tmp_path)
+    assert second.returncode == 0, second.stderr[-3000:]
+    summary2 = json.loads((tmp_path / "second.json").read_text())
+    run2 = Path(summary2["log_path"])
+    assert run2 != run1 and summary2["resumed_from"] == {"run_folder": str(run1), "timesteps": checkpoint["timesteps"]}
+    assert 4000 <= summary2["total_timesteps"] <= 4000 + 250
+    assert summary2["preference_db"] == summary1["preference_db"]
+    assert summary2["queries_used"] >= summary1["queries_used"]
+    assert summary2["queries_asked"] == summary2["queries_distinct"] == summary2["queries_used"]  # none asked twice
+    assert json.loads((run2 / "resumed.json").read_text())["timesteps"] == checkpoint["timesteps"]
+    timesteps = np.load(run2 / "evaluations.npz")["timesteps"]
+    assert timesteps[0] > checkpoint["timesteps"]
+
+    missing = _cli(*common, "-n", "4000", "--resume", str(tmp_path), cwd=tmp_path)
+    assert missing.returncode == 2 and "has no checkpoint.json" in missing.stderr and "--checkpoint-freq" in missing.stderr
