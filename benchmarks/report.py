@@ -37,7 +37,11 @@ CURVE_GRID_POINTS = 100
 
 
 def variant_name(variant: str) -> str:
-    return VARIANT_NAMES.get(variant, variant)
+    """A variant's name in tables and legends; a sweep's own HhP variants read "HhP, <the rest>" (``hhp_rho0.2``:
+    "HhP, rho0.2"; ``hhp_no_curiosity``: "HhP, no curiosity")."""
+    if variant in VARIANT_NAMES:
+        return VARIANT_NAMES[variant]
+    return "HhP, " + variant[len("hhp_"):].replace("_", " ") if variant.startswith("hhp_") else variant
 
 
 def _variant_order(variants: Sequence[str]) -> list[str]:

@@ -46,6 +46,8 @@ Sweep file (YAML)::
     curve_episodes: 20               # episodes of each periodic evaluation (default 10)
     hhp_conf: hyperparams/hhp.yml    # optional
     hhp_args: []                     # optional, more options for sb3_hhp.train
+    hhp_variants:                    # optional, more HhP variants: name (hhp_...) -> their own options, after hhp_args
+      hhp_rho0.2: [--oracle, noisy-scripted, --hyperparams, "oracle_kwargs:dict(rho=0.2)"]
     baselines_conf: hyperparams/baselines.yml   # optional
 
 Needs the ``plots`` extra (pandas).
@@ -59,6 +61,7 @@ import difflib
 import json
 import multiprocessing
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -83,6 +86,7 @@ SWEEP_KEYS: dict[str, Any] = {
     "curve_episodes": 10,
     "hhp_conf": None,
     "hhp_args": [],
+    "hhp_variants": {},
     "baselines_conf": "hyperparams/baselines.yml",
 }
 #: the columns of results.csv; a row's key is (env, variant, seed, steps); steps is the budget, timesteps the steps
@@ -139,6 +143,15 @@ class Sweep:
     hhp_conf: Optional[str]
     hhp_args: tuple[str, ...]
     baselines_conf: str
+    hhp_variants: dict[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
+
+    def is_hhp(self, variant: str) -> bool:
+        """Whether ``variant`` trains HhP (``hhp`` or one of the sweep's ``hhp_variants``)."""
+        return variant == "hhp" or variant in self.hhp_variants
+
+    def hhp_options(self, variant: str) -> tuple[str, ...]:
+        """The options ``sb3_hhp.train`` gets for an HhP variant beyond the runner's own."""
+        return self.hhp_args + self.hhp_variants.get(variant, ())
 
 
 # ---------------------------------------------------------------------- sweep file
@@ -162,6 +175,21 @@ def _string_list(value: Any, what: str) -> list[str]:
 def _check_file(path: Optional[str], what: str) -> None:
     if path is not None and not os.path.isfile(path):
         raise SweepError(f"{what}: no such file {path!r} (paths are relative to the working directory)")
+
+
+def _hhp_variants(value: Any, where: str) -> dict[str, tuple[str, ...]]:
+    """``hhp_variants``: HhP variants (``hhp_<name>``, letters, digits, ``.``, ``-``, ``_``) and their options."""
+    if not isinstance(value, dict):
+        raise SweepError(f"{where}: hhp_variants must map variant names to lists of options, got {value!r}")
+    variants = {}
+    for name, options in value.items():
+        if not isinstance(name, str) or not re.fullmatch(r"hhp_[A-Za-z0-9.\-]+(_[A-Za-z0-9.\-]+)*", name):
+            raise SweepError(f"{where}: hhp_variants name {name!r} must start with hhp_ and hold only letters, digits, "
+                             "'.', '-' and single '_' (it names files)")
+        if not isinstance(options, list) or not all(isinstance(word, (str, int, float)) for word in options):
+            raise SweepError(f"{where}: hhp_variants[{name}] must be a list of command-line words, got {options!r}")
+        variants[name] = tuple(str(word) for word in options)
+    return variants
 
 
 def load_sweep(path: Union[str, Path], check_envs: bool = True) -> Sweep:
@@ -192,12 +220,15 @@ def load_sweep(path: Union[str, Path], check_envs: bool = True) -> Sweep:
         if settings[key] is None:
             raise SweepError(f"{where}: {key!r} is required")
     envs = _string_list(settings["envs"], f"{where}: envs")
+    hhp_variants = _hhp_variants(settings["hhp_variants"], where)
     variants = _string_list(settings["variants"], f"{where}: variants")
+    known = (*VARIANTS, *hhp_variants)
     for variant in variants:
-        if variant not in VARIANTS:
-            close = difflib.get_close_matches(variant, VARIANTS, n=1)
+        if variant not in known:
+            close = difflib.get_close_matches(variant, known, n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise SweepError(f"{where}: unknown variant {variant!r}{hint}; use some of {', '.join(VARIANTS)}")
+            raise SweepError(f"{where}: unknown variant {variant!r}{hint}; use some of {', '.join(known)} "
+                             "(more HhP variants are named in hhp_variants)")
     seeds_value = settings["seeds"] if isinstance(settings["seeds"], list) else [settings["seeds"]]
     seeds = [_positive_int(seed, f"{where}: seeds", minimum=0) for seed in seeds_value]
     if not seeds:
@@ -223,7 +254,7 @@ def load_sweep(path: Union[str, Path], check_envs: bool = True) -> Sweep:
         for env in envs:
             check_env(env, where)
         for variant in variants:
-            if variant != "hhp":
+            if variant not in ("hhp", *hhp_variants):
                 for env in envs:
                     baseline_settings(settings["baselines_conf"], variant, env)
     sweep = Sweep(
@@ -237,6 +268,7 @@ def load_sweep(path: Union[str, Path], check_envs: bool = True) -> Sweep:
         hhp_conf=settings["hhp_conf"],
         hhp_args=tuple(str(arg) for arg in hhp_args),
         baselines_conf=str(settings["baselines_conf"]),
+        hhp_variants=hhp_variants,
     )
     return sweep
 
@@ -358,7 +390,7 @@ def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> 
         command += ["--resume", str(resume)]
     if sweep.hhp_conf:
         command += ["--conf-file", sweep.hhp_conf]
-    command += list(sweep.hhp_args)
+    command += list(sweep.hhp_options(experiment.variant))
     log_file.write("$ " + " ".join(command) + "\n")
     log_file.flush()
     completed = subprocess.run(
@@ -450,13 +482,13 @@ def run_experiment(experiment: Experiment, sweep: Sweep, out: Union[str, Path]) 
     """
     out = Path(out)
     log_folder = out / "logs" / experiment.name
-    resumes = experiment.variant == "hhp" and latest_checkpoint(log_folder) is not None
+    resumes = sweep.is_hhp(experiment.variant) and latest_checkpoint(log_folder) is not None
     if not resumes:
         shutil.rmtree(log_folder, ignore_errors=True)  # a failed earlier attempt's files
     log_folder.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     with open(out / "logs" / f"{experiment.name}.log", "a" if resumes else "w") as log_file:
-        if experiment.variant == "hhp":
+        if sweep.is_hhp(experiment.variant):
             result = _run_hhp(experiment, sweep, out, log_file)
         else:
             with contextlib.redirect_stdout(log_file), contextlib.redirect_stderr(log_file):
@@ -503,9 +535,10 @@ def read_results(csv_path: Union[str, Path]) -> Any:
 def write_results(results: Any, csv_path: Union[str, Path]) -> None:
     """Write ``results`` sorted by env, variant (in :data:`VARIANTS` order) and seed, atomically."""
     csv_path = Path(csv_path)
-    order = {variant: index for index, variant in enumerate(VARIANTS)}
+    order = {variant: index for index, variant in enumerate(VARIANTS)}  # HhP variants after the baselines, by name
     results = results.sort_values(
-        ["env", "variant", "seed"], key=lambda column: column.map(order) if column.name == "variant" else column
+        ["env", "variant", "seed"],
+        key=lambda column: column.map(lambda v: f"{order.get(v, len(order))}:{v}") if column.name == "variant" else column,
     )
     temporary = csv_path.with_suffix(".csv.tmp")
     results.to_csv(temporary, index=False)

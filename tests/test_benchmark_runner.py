@@ -57,6 +57,12 @@ def test_the_shipped_sweeps_parse():
     }
     assert {e.steps for e in doorkey.experiments} == {300_000}
     assert doorkey.eval_episodes == 100
+    ablations = load_sweep(EXPERIMENTS / "minigrid_ablations.yml")
+    assert ablations.name == "minigrid_tasks"  # its rows join the four tasks' table
+    assert {e.variant for e in ablations.experiments} == {
+        "hhp_rho0.1", "hhp_rho0.2", "hhp_no_preferences", "hhp_no_curiosity", "hhp_random_discovery"}
+    assert all(ablations.is_hhp(e.variant) for e in ablations.experiments) and not ablations.is_hhp("ppo")
+    assert ablations.hhp_options("hhp_rho0.2") == ("--oracle", "noisy-scripted", "--hyperparams", "oracle_kwargs:dict(rho=0.2)")
     smoke = load_sweep(EXPERIMENTS / "smoke.yml")
     assert [e.variant for e in smoke.experiments] == ["hhp", "dqn", "ppo", "ppo_rnd"]
     assert {e.steps for e in smoke.experiments} == {2000}
@@ -96,6 +102,11 @@ GRID = "envs: [MiniGrid-Empty-5x5-v0]\nvariants: [ppo]\nseeds: [0]\n"
             "Unknown env id 'MiniGrid-Empty-5x5-v1' \\(did you mean 'MiniGrid-Empty-5x5-v0'",
         ),
         (GRID.replace("MiniGrid-Empty-5x5-v0", "CartPole-v1") + "steps: 10", "No hyperparameters for CartPole-v1"),
+        (GRID.replace("[ppo]", "[hhp_rho0.3]") + "steps: 10\nhhp_variants: {hhp_rho0.2: []}",
+         "unknown variant 'hhp_rho0.3' \\(did you mean 'hhp_rho0.2'\\?\\)"),
+        (GRID + "steps: 10\nhhp_variants: {noisy: []}", "name 'noisy' must start with hhp_"),
+        (GRID + "steps: 10\nhhp_variants: {hhp__x: []}", "single '_'"),
+        (GRID + "steps: 10\nhhp_variants: {hhp_x: --oracle}", "hhp_variants\\[hhp_x\\] must be a list"),
     ],
 )
 def test_sweep_errors_say_what_to_fix(tmp_path, text, message):
@@ -137,6 +148,35 @@ def test_sweep_is_resumable_and_writes_one_tidy_csv(tmp_path):
     _, failures = run_sweep(bigger, out, jobs=1, runner=failing_row)
     assert len(failures) == 1 and "exited with status 1" in failures[0]
     assert len(pd.read_csv(csv_path)) == 4
+
+
+def test_hhp_variants_train_hhp_with_their_own_options(tmp_path, monkeypatch):
+    sweep = load_sweep(write(tmp_path, """
+        envs: [MiniGrid-Empty-5x5-v0]
+        variants: [ppo, hhp_rho0.2, hhp]
+        seeds: [0]
+        steps: 100
+        hhp_args: [--hyperparams, "n_envs:2"]
+        hhp_variants:
+          hhp_rho0.2: [--oracle, noisy-scripted, --hyperparams, "oracle_kwargs:dict(rho=0.2)"]
+    """), check_envs=False)
+    commands = []
+    monkeypatch.setattr("subprocess.run", lambda command, **kwargs: commands.append(command) or FailedRun())
+    for variant in ("hhp", "hhp_rho0.2"):
+        with open(tmp_path / "run.log", "w") as log_file, pytest.raises(RuntimeError):
+            _run_hhp(Experiment("MiniGrid-Empty-5x5-v0", variant, 0, 100), sweep, tmp_path, log_file)
+    plain, noisy = commands
+    assert plain[-2:] == ["--hyperparams", "n_envs:2"] and "noisy-scripted" not in plain
+    # the variant's options come last: its --oracle is the one sb3_hhp.train keeps
+    assert noisy[-6:] == ["--hyperparams", "n_envs:2", "--oracle", "noisy-scripted", "--hyperparams",
+                          "oracle_kwargs:dict(rho=0.2)"]
+    # rows: HhP, then the baselines, then the sweep's HhP variants; named "HhP, <rest>" in tables
+    out = tmp_path / "out"
+    out.mkdir()
+    csv_path, failures = run_sweep(sweep, out, jobs=1, runner=fake_row)
+    assert failures == [] and pd.read_csv(csv_path)["variant"].tolist() == ["hhp", "ppo", "hhp_rho0.2"]
+    assert report.variant_name("hhp_rho0.2") == "HhP, rho0.2"
+    assert report.variant_name("hhp_no_curiosity") == "HhP, no curiosity" and report.variant_name("ppo_rnd") == "PPO + RND"
 
 
 def test_parts_of_a_sweep_run_apart_and_share_one_csv(tmp_path):
