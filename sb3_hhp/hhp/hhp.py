@@ -1066,7 +1066,9 @@ class HhP(BetweenEpisodes, DoubleDQN):
     def load_replay_buffer(self, path: Union[str, pathlib.Path, io.BufferedIOBase], truncate_last_traj: bool = True) -> None:
         """Load what :meth:`save_replay_buffer` saved into this model's replays (built with the same settings and
         sub-goals: load the model saved with it first). A file of SB3's ``save_replay_buffer`` (R_H alone) is
-        taken as R_H, the sub-goal learners' replay left as it is."""
+        taken as R_H, the sub-goal learners' replay left as it is. ``truncate_last_traj``: training goes on from
+        fresh episodes, so the newest transition of each env in the sub-goal learners' replay is taken as cut by a
+        time limit (no n-step return runs on into the next episode)."""
         try:
             data = load_from_pkl(path, self.verbose)
         except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, ValueError) as error:
@@ -1078,7 +1080,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             return
         if not isinstance(data, dict) or data.get("format") != REPLAY_FORMAT:
             raise ValueError(f"{path} is not a replay saved by HhP.save_replay_buffer (nor an SB3 replay buffer)")
-        self.subpolicies.load_replay_state(data["subgoal_learners"])
+        self.subpolicies.load_replay_state(data["subgoal_learners"], truncate_last_traj)
         meta = self.replay_buffer
         load_buffer_state(meta, data["meta"], meta.buffer_size, "the meta-controller's replay R_H")
         meta.device = self.device

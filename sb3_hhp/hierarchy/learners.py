@@ -546,14 +546,21 @@ class StackedDQN:
         return {"format": "sb3_hhp.SharedReplay", "goal_keys": list(self.replay.goal_keys),
                 "replay": buffer_state(self.replay, self.replay.capacity, self.replay.size(), skip=("_achieved",))}
 
-    def load_replay_state(self, state: Any) -> None:
-        """Refill the shared replay from :meth:`replay_state` (the learners' sub-goals must be the file's)."""
+    def load_replay_state(self, state: Any, truncate_last_traj: bool = True) -> None:
+        """Refill the shared replay from :meth:`replay_state` (the learners' sub-goals must be the file's).
+        ``truncate_last_traj``: the newest transition of every env is taken as cut by a time limit, so no n-step
+        return runs on into the first step of the fresh episodes that training goes on with (as SB3 truncates a
+        loaded HER buffer's last episode)."""
         if not isinstance(state, dict) or state.get("format") != "sb3_hhp.SharedReplay":
             raise ValueError("the file holds no shared replay of stacked sub-goal learners")
         if list(state["goal_keys"]) != list(self.replay.goal_keys):
             raise ValueError(f"the file's replay belongs to a model with {len(state['goal_keys'])} sub-goals, this one "
                              f"has {len(self.replay.goal_keys)} (or others): load the replay saved with this model")
         load_buffer_state(self.replay, state["replay"], self.replay.capacity, "the sub-goal learners' replay")
+        replay = self.replay
+        if truncate_last_traj and replay.size() > 0:
+            newest = (replay.pos - 1) % replay.capacity
+            replay.truncated[newest] |= ~replay.terminated[newest]
 
     def load_state_dict(self, state: Any) -> None:
         if not isinstance(state, dict) or state.get("format") != "sb3_hhp.StackedDQN":

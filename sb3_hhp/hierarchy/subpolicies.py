@@ -329,8 +329,9 @@ class PerGoalLearners:
                 "replays": [buffer_state(buffer, buffer.buffer_size, buffer.buffer_size if buffer.full else buffer.pos)
                             for buffer in buffers]}
 
-    def load_replay_state(self, state: Any) -> None:
-        """Refill every subpolicy's replay buffer from :meth:`replay_state` (the sub-goals must be the file's)."""
+    def load_replay_state(self, state: Any, truncate_last_traj: bool = True) -> None:
+        """Refill every subpolicy's replay buffer from :meth:`replay_state` (the sub-goals must be the file's; their
+        one-step transitions need no truncation)."""
         if not isinstance(state, dict) or state.get("format") != "sb3_hhp.PerGoalReplays":
             raise ValueError("the file holds no replay buffers of per-sub-goal learners")
         if list(state["goal_keys"]) != list(self.goal_keys):
