@@ -508,7 +508,7 @@ def run_experiment(experiment: Experiment, sweep: Sweep, out: Union[str, Path]) 
         "return_stoch": summary.get("mean_return_stochastic"),
         "labels_used": result["labels_used"],
         "eval_episodes": summary.get("eval_episodes"),
-        "train_seconds": summary.get("train_seconds"),
+        "train_seconds": summary.get("train_seconds_all_parts", summary.get("train_seconds")),  # a resumed run's parts
         "wall_seconds": round(wall_seconds, 1),
         "curve": os.path.relpath(curve, out) if curve else None,
         "summary": os.path.relpath(result["summary_path"], out),

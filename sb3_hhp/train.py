@@ -256,15 +256,19 @@ def _checkpoint_callback_class() -> type:
         :param save_freq: primitive steps between checkpoints (counted on the model's step count, so a resumed run
             keeps the same checkpoint steps)
         :param save_path: the run folder
+        :param train_seconds: seconds of training before this part (a resumed run's, up to its checkpoint): each
+            checkpoint records the training time up to it, every part together
         """
 
-        def __init__(self, save_freq: int, save_path: str, verbose: int = 0) -> None:
+        def __init__(self, save_freq: int, save_path: str, train_seconds: float = 0.0, verbose: int = 0) -> None:
             super().__init__(verbose)
             self.save_freq, self.save_path = int(save_freq), Path(save_path)
             self.saved_at = -1
+            self.earlier_seconds, self.start = float(train_seconds), time.perf_counter()
 
         def _init_callback(self) -> None:
             self.saved_at = self.model.num_timesteps  # a resumed run's checkpoint is its start
+            self.start = time.perf_counter()
 
         def _on_step(self) -> bool:
             if self.num_timesteps // self.save_freq > max(self.saved_at, 0) // self.save_freq:
@@ -283,8 +287,9 @@ def _checkpoint_callback_class() -> type:
             self.model.save_replay_buffer(folder / "replay.pkl")
             pointer = self.save_path / CHECKPOINT_FILE
             temporary = pointer.with_suffix(".json.tmp")
+            seconds = round(self.earlier_seconds + time.perf_counter() - self.start, 1)
             temporary.write_text(json.dumps({"timesteps": steps, "model": f"checkpoints/{steps}/model.zip",
-                                             "replay": f"checkpoints/{steps}/replay.pkl"}) + "\n")
+                                             "replay": f"checkpoints/{steps}/replay.pkl", "train_seconds": seconds}) + "\n")
             os.replace(temporary, pointer)
             for older in (self.save_path / "checkpoints").iterdir():
                 if older.name != str(steps):
@@ -309,7 +314,8 @@ def read_checkpoint(run_folder: str) -> dict[str, Any]:
     try:
         checkpoint = json.loads(pointer.read_text())
         checkpoint = {"timesteps": int(checkpoint["timesteps"]), "model": str(folder / checkpoint["model"]),
-                      "replay": str(folder / checkpoint["replay"]), "run_folder": str(folder)}
+                      "replay": str(folder / checkpoint["replay"]), "run_folder": str(folder),
+                      "train_seconds": float(checkpoint.get("train_seconds", 0.0))}
     except (ValueError, KeyError, TypeError) as error:
         raise ConfigError(f"--resume {run_folder}: {pointer} is damaged ({error})") from error
     for what in ("model", "replay"):
@@ -417,7 +423,8 @@ def _experiment_manager_class() -> type:
         def create_callbacks(self) -> None:
             super().create_callbacks()
             if self.hhp_options.checkpoint_freq > 0:
-                self.callbacks.append(_checkpoint_callback_class()(self.hhp_options.checkpoint_freq, self.save_path))
+                earlier = self.checkpoint["train_seconds"] if self.checkpoint is not None else 0.0
+                self.callbacks.append(_checkpoint_callback_class()(self.hhp_options.checkpoint_freq, self.save_path, earlier))
 
         def _load_pretrained_agent(self, hyperparams: dict[str, Any], env: Any) -> Any:
             """The checkpoint of ``--resume``: the model as it was saved (its own hyperparameters), with this run's
@@ -771,6 +778,9 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
         trained = model.num_timesteps - manager.start_timesteps
         summary["fps"] = round(trained / manager.train_seconds, 1) if manager.train_seconds > 0 else None
         summary["resumed_from"] = {"run_folder": manager.checkpoint["run_folder"], "timesteps": manager.start_timesteps}
+        # every part's training up to the checkpoint this part resumed, and this part's (a part's steps after its
+        # last checkpoint were trained again, and are not counted)
+        summary["train_seconds_all_parts"] = round(manager.checkpoint["train_seconds"] + manager.train_seconds, 3)
     summary["log_path"] = manager.save_path
     summary["model_path"] = os.path.join(manager.save_path, f"{manager.env_name}.zip")
     summary["config"] = manager.config

@@ -113,6 +113,7 @@ def test_a_run_goes_on_from_its_checkpoint(tmp_path):
     run1 = Path(summary1["log_path"])
     checkpoint = json.loads((run1 / "checkpoint.json").read_text())
     assert checkpoint["timesteps"] == summary1["total_timesteps"]  # written at the end of training too
+    assert 0 < checkpoint["train_seconds"] <= summary1["train_seconds"]
     assert [path.name for path in (run1 / "checkpoints").iterdir()] == [str(checkpoint["timesteps"])]  # the last only
 
     second = _cli(*common, "-n", "4000", "--resume", str(run1), "--summary-json", str(tmp_path / "second.json"),
@@ -121,6 +122,9 @@ def test_a_run_goes_on_from_its_checkpoint(tmp_path):
     summary2 = json.loads((tmp_path / "second.json").read_text())
     run2 = Path(summary2["log_path"])
     assert run2 != run1 and summary2["resumed_from"] == {"run_folder": str(run1), "timesteps": checkpoint["timesteps"]}
+    assert summary2["train_seconds_all_parts"] == pytest.approx(checkpoint["train_seconds"] + summary2["train_seconds"],
+                                                                abs=0.01)
+    assert json.loads((run2 / "checkpoint.json").read_text())["train_seconds"] > checkpoint["train_seconds"]
     assert 4000 <= summary2["total_timesteps"] <= 4000 + 250
     assert summary2["preference_db"] == summary1["preference_db"]
     assert summary2["queries_used"] >= summary1["queries_used"]
