@@ -92,7 +92,7 @@ DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similari
 #: only while they act (None: True for discrete actions, False for DDPG sub-goals, a model each); most learners
 #: updated in one round (``subgoal_learner="stacked"``; None: all)
 SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(exploration_steps=5_000, share_experience=True, train_shared=None,
-                                                max_updates=8)
+                                                max_updates=8, grouped_rounds=False)
 #: each ``*_kwargs`` argument grouped over defaults: its defaults and the keys it accepts (None: the defaults' keys)
 GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
     "query_kwargs": (QUERY_DEFAULTS, None),

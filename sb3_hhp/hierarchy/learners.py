@@ -100,6 +100,10 @@ class StackedDQN:
     :param max_updates: most sub-goal learners updated in one learning round: the sub-goals some env pursues now
         first, then those that waited longest for an update; the others skip that round. Bounds the cost of a step
         as sub-goals accumulate. None: every sub-goal whose update is due
+    :param grouped_rounds: the learning rounds due at one step of the envs (8 envs and ``train_freq`` 4: two) in one
+        grouped call: their batches drawn together and every gradient computed from the parameters as they were
+        before the step, then applied round after round, each an Adam step of its own. A later round's gradient is
+        thus one update old. False: one call per round, each from the parameters the round before left
     """
 
     #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
@@ -120,6 +124,7 @@ class StackedDQN:
         device: th.device | str = "cpu",
         seed: Optional[int] = None,
         max_updates: Optional[int] = None,
+        grouped_rounds: bool = False,
     ) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
@@ -127,6 +132,7 @@ class StackedDQN:
                                         or max_updates < 1):
             raise ValueError(f"max_updates (subgoal_learner_kwargs) must be an integer >= 1 or None, got {max_updates!r}")
         self.max_updates = None if max_updates is None else int(max_updates)
+        self.grouped_rounds = bool(grouped_rounds)
         self.rounds = 0  # learning rounds so far
         if exploration_steps < 1:
             raise ValueError(f"exploration_steps must be >= 1, got {exploration_steps}")
@@ -423,13 +429,18 @@ class StackedDQN:
         if ready and due_updates.any():
             totals = replay.trees.total(np.arange(n_goals))
             rounds = int(due_updates.max()) * self.gradient_steps
+            plan, first_round = [], self.rounds
             for r in range(rounds):
                 goals = np.flatnonzero((due_updates * self.gradient_steps > r) & (totals > 0))
                 if len(goals):
                     goals = self.bounded(goals, acting)
-                    self.train(goals)
+                    if not self.grouped_rounds:
+                        self.train_rounds([goals], first_round=self.rounds)
+                    plan.append(goals)
                     self.last_round[goals] = self.rounds
                     self.rounds += 1
+            if self.grouped_rounds and plan:
+                self.train_rounds(plan, first_round=first_round)
         if due_targets.any():
             index = th.as_tensor(np.flatnonzero(due_targets), device=self.device)
             self.target[index] = self.params[index]
@@ -447,6 +458,13 @@ class StackedDQN:
         """One gradient step for each sub-goal of ``goals``, all in one grouped call: a prioritized batch per
         sub-goal, the Double DQN target of its n-step returns (raised to the behaviour's return with the lower
         bound), the importance-weighted Huber loss, each sub-goal's gradient clipped to ``max_grad_norm``, Adam."""
+        return self.train_rounds([np.asarray(goals)], first_round=self.rounds)
+
+    def train_rounds(self, plan: list[np.ndarray], first_round: int = 0) -> float:
+        """The learning rounds ``plan`` (the sub-goals of each, in order; ``first_round``: the number of the first) as
+        :meth:`train` does one, in one grouped call: every round's batches drawn at once, every gradient from the
+        parameters as they are now, then one Adam step per round, in order (``grouped_rounds``)."""
+        goals = np.concatenate(plan) if len(plan) > 1 else np.asarray(plan[0])
         batch = self.replay.sample(goals, self.batch_size)
         index = self._rows(goals)
         params = self.params[index]
@@ -487,10 +505,13 @@ class StackedDQN:
             grad = self._mlp_backward(params, outputs, grad_q)
         else:
             (grad,) = th.autograd.grad(loss.sum(), [params])
-        self._adam(goals, grad)
+        start = 0
+        for number, round_goals in enumerate(plan, start=first_round):
+            self._adam(round_goals, grad[start : start + len(round_goals)], number)
+            start += len(round_goals)
         td_errors = (y - q).detach().abs().cpu().numpy()
-        self.replay.update_priorities(goals, batch.leaves, td_errors)
-        self.n_updates[goals] += 1
+        self.replay.update_priorities(goals, batch.leaves, td_errors)  # a later round's over an earlier one's
+        np.add.at(self.n_updates, goals, 1)
         self.last_loss = float(loss.mean().detach())
         return self.last_loss
 
@@ -502,9 +523,11 @@ class StackedDQN:
             self._views[key] = tuple(list(tensor.unbind(0)) for tensor in (self.params, self.exp_avg, self.exp_avg_sq))
         return self._views[key]
 
-    def _adam(self, goals: np.ndarray, grad: th.Tensor, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8) -> None:
+    def _adam(self, goals: np.ndarray, grad: th.Tensor, round_number: int, betas: tuple[float, float] = (0.9, 0.999),
+              eps: float = 1e-8) -> None:
         """Adam (torch's, its fused kernel) with each sub-goal's own step count, after clipping each sub-goal's
-        gradient norm to ``max_grad_norm`` (as SB3 clips a model's); the rows of ``goals`` are updated in place."""
+        gradient norm to ``max_grad_norm`` (as SB3 clips a model's); the rows of ``goals`` (distinct) are updated in
+        place; ``round_number``: the learning round's."""
         grad = grad * th.clamp(self.max_grad_norm / (grad.norm(dim=1, keepdim=True) + 1e-6), max=1.0)
         self.adam_steps[goals] += 1
         steps = [th.tensor(float(step), device=self.device) for step in self.adam_steps[goals]]
@@ -512,7 +535,7 @@ class StackedDQN:
         th._fused_adam_([rows[0][g] for g in goals], list(grad.unbind(0)), [rows[1][g] for g in goals],
                         [rows[2][g] for g in goals], [], steps, lr=self.lr, beta1=betas[0], beta2=betas[1],
                         weight_decay=0.0, eps=eps, amsgrad=False, maximize=False)
-        if self.rounds % 1000 == 0:
+        if round_number % 1000 == 0:
             # moments that decay towards 0 (inputs that are always 0) become subnormal floats, which CPUs multiply
             # several times slower: adding and taking away a small normal number now and then sends anything below
             # its last bit (~1e-37) to exactly 0

@@ -88,11 +88,12 @@ class GoalTrees:
         return (np.asarray(trees, dtype=np.int64) * self._sum.shape[1])[:, None]
 
     def update(self, trees: np.ndarray, leaves: np.ndarray, priorities: np.ndarray) -> None:
-        """Set ``priorities`` (shape ``(T, B)``) of ``leaves`` (same shape) in ``trees`` (shape ``(T,)``)."""
+        """Set ``priorities`` (shape ``(T, B)``) of ``leaves`` (same shape) in ``trees`` (shape ``(T,)``); where a tree
+        and leaf appear twice, the later row's priority is kept."""
         self._flush()
         flat, bases = self._sum.reshape(-1), self._bases(trees)
         flat[bases + self._size + leaves] = priorities
-        self.max_priority[trees] = np.maximum(self.max_priority[trees], priorities.max(axis=1))
+        np.maximum.at(self.max_priority, trees, priorities.max(axis=1))  # a tree may appear twice (grouped rounds)
         nodes = bases + ((self._size + leaves) >> 1)
         for _ in range(self._depth):
             flat[nodes] = flat[nodes + (nodes - bases)] + flat[nodes + (nodes - bases) + 1]
