@@ -163,14 +163,52 @@ def test_one_grouped_update_equals_sb3s_double_dqn_step_for_every_subgoal(monkey
     assert learners.n_updates.tolist() == [1, int(1 in due), 1]
 
 
+def test_grouped_rounds_compute_every_gradient_before_the_first_update_then_step_round_by_round(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """grouped_rounds: two rounds due at one step ([0, 2] then [0, 1, 2]) in one call: each round's gradient from the
+    parameters as they were before the step (SB3's DQN loss, clipped as SB3 clips), then torch's Adam step of round 1,
+    then that of round 2."""
+    learners = small_learners(grouped_rounds=True)
+    for goal in ("A", "B", "C"):
+        learners.add(goal)
+    fill(learners.replay, ["x"] * 8, acting=[0] * 8)
+    plan = [np.array([0, 2]), np.array([0, 1, 2])]
+    batch = fixed_batch(np.concatenate(plan), seed=3)
+    monkeypatch.setattr(learners.replay, "sample", lambda goals, batch_size: batch)
+    policies = {goal: learners.policy(goal) for goal in range(3)}  # the parameters before the step
+    optimizers = {goal: th.optim.Adam(policy.q_net.parameters(), lr=0.01) for goal, policy in policies.items()}
+    grads = []
+    for row, goal in enumerate(np.concatenate(plan)):
+        net, target = policies[int(goal)].q_net, policies[int(goal)].q_net_target
+        obs, next_obs = th.as_tensor(batch.observations[row]), th.as_tensor(batch.next_observations[row])
+        with th.no_grad():
+            next_q = target(next_obs).gather(1, net(next_obs).argmax(dim=1, keepdim=True))[:, 0]
+            y = th.as_tensor(batch.returns[row]) + 0.81 * (1 - th.as_tensor(batch.dones[row])) * next_q
+        q = net(obs).gather(1, th.as_tensor(batch.actions[row]).long()[:, None])[:, 0]
+        loss = (th.as_tensor(batch.weights[row]) * F.smooth_l1_loss(q, y, reduction="none")).mean()
+        grad = th.autograd.grad(loss, list(net.parameters()))
+        norm = th.sqrt(sum((g ** 2).sum() for g in grad))
+        grads.append([g * min(1.0, 0.5 / (float(norm) + 1e-6)) for g in grad])
+    for row, goal in enumerate(np.concatenate(plan)):  # round 1's steps, then round 2's
+        for parameter, grad in zip(policies[int(goal)].q_net.parameters(), grads[row]):
+            parameter.grad = grad
+        optimizers[int(goal)].step()
+    learners.train_rounds(plan, first_round=1)
+    for goal, policy in policies.items():
+        expected = th.cat([p.detach().reshape(-1) for p in policy.q_net.parameters()])
+        th.testing.assert_close(learners.params[goal], expected, rtol=1e-5, atol=1e-6)
+    assert learners.n_updates.tolist() == [2, 1, 2] and learners.adam_steps[:3].tolist() == [2, 1, 2]
+
+
 def test_updates_follow_the_train_frequency_in_one_call_whatever_the_number_of_subgoals(monkeypatch) -> None:
     for n_goals in (2, 12):
         learners = small_learners(train_shared=True)
         for goal in range(n_goals):
             learners.add(goal)
         calls = []
-        original = learners.train
-        monkeypatch.setattr(learners, "train", lambda goals: calls.append(len(goals)) or original(goals))
+        original = learners.train_rounds
+        monkeypatch.setattr(learners, "train_rounds",
+                            lambda plan, first_round: calls.extend(map(len, plan)) or original(plan, first_round))
         fill(learners.replay, ["x"] * 3, acting=[0] * 3)
         learners.own_steps[:] = 0
         for step in range(10):
@@ -183,13 +221,32 @@ def test_updates_follow_the_train_frequency_in_one_call_whatever_the_number_of_s
         th.testing.assert_close(learners.target[:n_goals], learners.params[:n_goals])
 
 
+@pytest.mark.parametrize("grouped", [False, True])
+def test_the_rounds_due_at_one_step_are_one_call_with_grouped_rounds(monkeypatch, grouped: bool) -> None:
+    learners = small_learners(train_shared=True, grouped_rounds=grouped, n_envs=4)  # 4 ticks a step: 2 rounds
+    for goal in range(3):
+        learners.add(goal)
+    calls = []
+    original = learners.train_rounds
+    monkeypatch.setattr(learners, "train_rounds",
+                        lambda plan, first_round: calls.append((len(plan), first_round)) or original(plan, first_round))
+    for step in range(3):
+        learners.observe(np.zeros((4, 3), np.float32), np.zeros(4, np.int64), np.zeros((4, 3), np.float32), ["x"] * 4,
+                         np.zeros(4, bool), np.zeros(4, bool), np.zeros(4, bool), np.array([0, 1, 2, 0]),
+                         np.zeros(4, np.float32))
+    # learning starts at 4 stored transitions (the first step), then two rounds a step, numbered on
+    assert calls == ([(2, 0), (2, 2), (2, 4)] if grouped else [(1, 0), (1, 1), (1, 2), (1, 3), (1, 4), (1, 5)])
+    assert learners.n_updates.tolist() == [6, 6, 6] and learners.rounds == 6
+
+
 def test_a_round_updates_at_most_max_updates_subgoals_the_pursued_first_then_the_longest_waiting(monkeypatch) -> None:
     learners = small_learners(train_shared=True, max_updates=3)
     for goal in range(7):
         learners.add(goal)
     calls = []
-    original = learners.train
-    monkeypatch.setattr(learners, "train", lambda goals: calls.append(goals.tolist()) or original(goals))
+    original = learners.train_rounds
+    monkeypatch.setattr(learners, "train_rounds",
+                        lambda plan, first_round: calls.extend(g.tolist() for g in plan) or original(plan, first_round))
     fill(learners.replay, ["x"] * 3, acting=[0] * 3)
     for step in range(12):  # an update round every 2 steps: 6 rounds; sub-goal 5 is pursued throughout
         learners.observe(np.zeros((1, 3), np.float32), np.array([0]), np.zeros((1, 3), np.float32), ["x"],
