@@ -436,9 +436,9 @@ def _experiment_manager_class() -> type:
             os.makedirs(self.save_path, exist_ok=True)  # where this part's evaluations begin (benchmarks join the parts)
             with open(os.path.join(self.save_path, "resumed.json"), "w") as file:
                 json.dump({"run_folder": checkpoint["run_folder"], "timesteps": checkpoint["timesteps"]}, file)
+            chosen = {key: hyperparams[key] for key in ("oracle", "preference_db") if hyperparams.get(key) is not None}
             model = HhP.load(checkpoint["model"], env=env, seed=self.seed, device=self.device, verbose=self.verbose,
-                             tensorboard_log=self.tensorboard_log, oracle=hyperparams["oracle"],
-                             preference_db=hyperparams.get("preference_db"))
+                             tensorboard_log=self.tensorboard_log, **chosen)  # else the ones it was saved with
             model.load_replay_buffer(checkpoint["replay"])
             return model
 

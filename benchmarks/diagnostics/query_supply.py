@@ -16,12 +16,13 @@ import argparse
 import json
 import pathlib
 import sys
+import tempfile
 
 import numpy as np
 import torch as th
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
-from benchmarks.speed import entry_kwargs, make_envs  # noqa: E402
+from benchmarks.speed import as_trained, entry_kwargs, make_envs  # noqa: E402
 from sb3_hhp import HhP  # noqa: E402
 from sb3_hhp.goals import register_minigrid_tasks  # noqa: E402
 
@@ -60,8 +61,8 @@ def main() -> None:
     th.set_num_threads(1)
     register_minigrid_tasks()
     entry, kwargs = entry_kwargs(args.env)
-    kwargs["oracle"] = "scripted"
-    model = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **kwargs)
+    folder = pathlib.Path(tempfile.mkdtemp(prefix="hhp_query_supply_"))  # as sb3_hhp.train builds it: a preference file
+    model = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **as_trained(kwargs, folder))
     rounds = record_rounds(model)
     model.learn(args.steps)
     totals = {key: int(sum(r[key] for r in rounds)) for key in ("tuples", "with_second", "askable", "selected")}
