@@ -17,6 +17,12 @@ number of steps: the speed late in a run, when sub-goals have accumulated and ep
 
     python benchmarks/speed.py late --model RUN/MiniGrid-DoorKey-8x8-v0.zip --n-envs 8
 
+``ab``: two settings of the sub-goal learners (``--learners-a``, ``--learners-b``, JSON attributes, e.g.
+``{"grouped_rounds": true}``) trained on, alternately, from one saved state of a run (HhP.save and save_replay_buffer
+at ``--start`` steps), ``--repeats`` pairs of ``--profile-steps`` steps each::
+
+    python benchmarks/speed.py ab --env MiniGrid-DoorKey-8x8-v0 --n-envs 8 --start 20000 --profile-steps 6000
+
 ``subgoals``: HhP with K sub-goals handed in (``discovery="none"``), K = 2 and 32, each in a fresh process: the
 cost of a primitive step (after a warm-up) and the peak resident memory::
 
@@ -156,6 +162,33 @@ def late(args: argparse.Namespace) -> dict[str, Any]:
                 num_subgoals=len(hhp.subgoals), dqn_learning=learning)
 
 
+def learners_ab(args: argparse.Namespace) -> dict[str, Any]:
+    """HhP trained to ``--start`` steps and saved with its replays; then ``--repeats`` times, alternately, loaded and
+    trained ``--profile-steps`` more with the learner settings of ``--learners-a`` and of ``--learners-b``: two
+    settings of the sub-goal learners from one state, timed side by side (the machine drifts)."""
+    _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
+    folder = pathlib.Path(tempfile.mkdtemp(prefix="hhp_ab_"))
+    hhp = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **as_trained(kwargs, folder))
+    hhp.learn(args.start)
+    hhp.save(folder / "snapshot.zip")
+    hhp.save_replay_buffer(folder / "snapshot_replay.pkl")
+    settings = {"a": json.loads(args.learners_a), "b": json.loads(args.learners_b)}
+    fps: dict[str, list[float]] = {"a": [], "b": []}
+    subgoals: dict[str, list[int]] = {"a": [], "b": []}
+    for repeat in range(args.repeats):
+        for name, values in settings.items():
+            model = HhP.load(folder / "snapshot.zip", env=make_envs(args.env, args.n_envs, args.seed + 1 + repeat))
+            model.load_replay_buffer(folder / "snapshot_replay.pkl")
+            for key, value in values.items():  # the learners' attributes (e.g. grouped_rounds, max_updates)
+                setattr(model.subpolicies, key, value)
+            fps[name].append(round(timed_steps(model, args.profile_steps), 1))
+            subgoals[name].append(len(model.subgoals))
+    ratios = np.array(fps["b"]) / np.array(fps["a"])
+    return dict(env=args.env, snapshot_steps=hhp.num_timesteps, snapshot_subgoals=len(hhp.subgoals), steps=args.profile_steps,
+                n_envs=args.n_envs, learners_a=settings["a"], learners_b=settings["b"], fps_a=fps["a"], fps_b=fps["b"],
+                subgoals_a=subgoals["a"], subgoals_b=subgoals["b"], median_ratio_b_to_a=round(float(np.median(ratios)), 3))
+
+
 def distinct_states(env_id: str, n: int, seed: int) -> list[np.ndarray]:
     """``n`` observations from random play, of as many distinct sub-goal keys as the env shows (then repeated)."""
     from sb3_hhp.goals import make_goal_space
@@ -202,7 +235,7 @@ def subgoals(args: argparse.Namespace) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["ratio", "late", "subgoals", "one"])
+    parser.add_argument("what", choices=["ratio", "late", "subgoals", "ab", "one"])
     parser.add_argument("--env", default="MiniGrid-DoorKey-8x8-v0")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--start", type=int, default=20_000, help="primitive steps before the timed window")
@@ -214,6 +247,9 @@ def main() -> None:
     parser.add_argument("--hhp-kwargs", default="{}", help="JSON: HhP arguments over the entry's, e.g. '{\"subgoal_learner\": \"heads\"}'")
     parser.add_argument("--model", default=None, help="late: a saved HhP model to train on")
     parser.add_argument("--name", default=None, help="the result file's name (default: the measurement's)")
+    parser.add_argument("--learners-a", default="{}", help="ab: JSON, sub-goal learner attributes of A")
+    parser.add_argument("--learners-b", default='{"grouped_rounds": true}', help="ab: JSON, the same for B")
+    parser.add_argument("--repeats", type=int, default=4, help="ab: A-B pairs")
     parser.add_argument("--out", default="benchmarks/results/speed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (HhP and the flat DQN alike)")
     args = parser.parse_args()
@@ -223,7 +259,7 @@ def main() -> None:
         return
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()[0]
-    result = {"ratio": ratio, "late": late, "subgoals": subgoals}[args.what](args)
+    result = {"ratio": ratio, "late": late, "subgoals": subgoals, "ab": learners_ab}[args.what](args)
     result.update(threads=args.threads, load_average_start=round(load_before, 2), load_average_end=round(os.getloadavg()[0], 2),
                   command=" ".join(sys.argv))
     (pathlib.Path(args.out) / f"{args.name or args.what}.json").write_text(json.dumps(result, indent=2) + "\n")
