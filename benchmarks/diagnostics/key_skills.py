@@ -7,7 +7,11 @@ steps. A learner that succeeds on its own choices (its success rate in the run) 
 only the starts the meta-controller gave it; one that fails here and in the run has not learned the skill.
 
     python benchmarks/diagnostics/key_skills.py benchmarks/results/minigrid_tasks/logs/MiniGrid-KeyCorridorS4R3-v0__hhp__s0 \\
-        --env MiniGrid-KeyCorridorS4R3-v0 --out benchmarks/results/diagnostics/key_skills_kc_s0.json
+        --env MiniGrid-KeyCorridorS4R3-v0 --replay --out benchmarks/results/diagnostics/key_skills_kc_s0_800k.json
+
+With ``--replay``, the checkpoint's shared replay is loaded too, and for every sub-goal it counts the stored
+transitions that reach it (its learner's positive rewards, relabelled) and those its learner acted in: a learner
+whose sub-goal is reached nowhere in the replay has nothing to learn from.
 
 For comparison, the shortest number of steps from the same states to facing the locked door (a breadth-first search
 over cells and headings: turns, moves, one more step to open a closed door) is reported too.
@@ -28,17 +32,20 @@ from collections import deque
 from minigrid.core.world_object import Door, Key
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
+from stable_baselines3.common.env_util import make_vec_env  # noqa: E402
+
 from sb3_hhp import HhP  # noqa: E402
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
 
 
-def newest_checkpoint(run: str) -> tuple[str, int]:
+def newest_checkpoint(run: str) -> tuple[str, int, str]:
     pointers = glob.glob(str(pathlib.Path(run) / "**" / "checkpoint.json"), recursive=True)
     if not pointers:
         raise SystemExit(f"{run} holds no checkpoint.json (runs write them with --checkpoint-freq)")
     newest = max(pointers, key=lambda path: json.loads(pathlib.Path(path).read_text())["timesteps"])
     checkpoint = json.loads(pathlib.Path(newest).read_text())
-    return str(pathlib.Path(newest).parent / checkpoint["model"]), int(checkpoint["timesteps"])
+    folder = pathlib.Path(newest).parent
+    return str(folder / checkpoint["model"]), int(checkpoint["timesteps"]), str(folder / checkpoint["replay"])
 
 
 def key_carried(env: gym.Env, seed: int, heading: int) -> np.ndarray:
@@ -93,16 +100,30 @@ def main() -> None:
     parser.add_argument("--env", default="MiniGrid-KeyCorridorS4R3-v0")
     parser.add_argument("--layouts", type=int, default=40, help="fresh layouts (seeds 1000, 1001, ...)")
     parser.add_argument("--steps", type=int, default=50, help="primitive steps a learner gets (a sub-goal's give-up)")
+    parser.add_argument("--replay", action="store_true", help="also count each sub-goal's positives in the replay")
     parser.add_argument("--out", default=None, help="write the result as JSON here")
     args = parser.parse_args()
     th.set_num_threads(1)
     register_minigrid_tasks()
-    path, timesteps = newest_checkpoint(args.run)
+    path, timesteps, replay_path = newest_checkpoint(args.run)
     model = HhP.load(path, device="cpu")
     learners, space = model.subpolicies, model.goal_space
     names = [space.describe(goal.key) for goal in model.subgoals]
     result = {"run": args.run, "checkpoint_steps": timesteps, "env": args.env, "layouts": args.layouts,
               "steps": args.steps, "subgoals": {}}
+    if args.replay:
+        model.set_env(make_vec_env(args.env, n_envs=model.subpolicies.n_envs, wrapper_class=wrap_env))
+        model.load_replay_buffer(replay_path)
+        replay = model.subpolicies.replay
+        rows = replay.size()
+        result["replay"] = {"transitions": rows * replay.n_envs, "subgoals": {}}
+        for goal, name in enumerate(names):
+            reached = replay.done(replay.key_ids[:rows], goal)
+            acted = replay.acting[:rows] == goal
+            counts = {"reached": int(reached.sum()), "acted": int(acted.sum()), "reached_acting": int((reached & acted).sum())}
+            result["replay"]["subgoals"][name] = counts
+            print(f"replay, {name}: reached in {counts['reached']} of {rows * replay.n_envs} stored transitions, "
+                  f"its learner acted in {counts['acted']}, reaching it in {counts['reached_acting']}")
     env = wrap_env(gym.make(args.env))
     shortest = [steps_to_locked_door_from(env, 1000 + layout, layout % 4) for layout in range(args.layouts)]
     known = [value for value in shortest if value is not None]
