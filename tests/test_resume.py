@@ -77,6 +77,9 @@ def test_load_replay_buffer_refuses_what_does_not_fit(trained, tmp_path):
     loaded = HhP.load(folder / "model.zip", env=make_vec_env(ENV, n_envs=2, wrapper_class=wrap_env), buffer_size=30_000)
     with pytest.raises(ValueError, match="buffer size it was saved with"):
         loaded.load_replay_buffer(folder / "replay.pkl")
+    four = HhP.load(folder / "model.zip", env=make_vec_env(ENV, n_envs=4, wrapper_class=wrap_env))
+    with pytest.raises(ValueError, match="transitions of 2 envs, the model steps 4: give the model as many envs"):
+        four.load_replay_buffer(folder / "replay.pkl")
     save_to_pkl(tmp_path / "other.pkl", {"something": 1})
     with pytest.raises(ValueError, match="not a replay saved by HhP.save_replay_buffer"):
         model.load_replay_buffer(tmp_path / "other.pkl")

@@ -308,6 +308,10 @@ def load_buffer_state(buffer: Any, state: dict[str, Any], capacity: int, what: s
         raise ValueError(f"{what}: the file holds no saved replay buffer")
     if state.get("class") != type(buffer).__name__:
         raise ValueError(f"{what}: the file holds a {state.get('class')}, the model a {type(buffer).__name__}")
+    saved_envs, live_envs = state["attributes"].get("n_envs"), getattr(buffer, "n_envs", None)
+    if saved_envs is not None and live_envs is not None and saved_envs != live_envs:
+        raise ValueError(f"{what}: the file's buffer holds the transitions of {saved_envs} envs, the model steps "
+                         f"{live_envs}: give the model as many envs as it was saved with")
     if state["capacity"] != capacity:
         raise ValueError(f"{what}: the file's buffer holds {state['capacity']} rows, the model's {capacity}: build the "
                          "model with the buffer size it was saved with")
