@@ -18,7 +18,6 @@ over cells and headings: turns, moves, one more step to open a closed door) is r
 """
 
 import argparse
-import glob
 import json
 import pathlib
 import sys
@@ -34,18 +33,19 @@ from minigrid.core.world_object import Door, Key
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
 from stable_baselines3.common.env_util import make_vec_env  # noqa: E402
 
+from benchmarks.run import latest_checkpoint  # noqa: E402
 from sb3_hhp import HhP  # noqa: E402
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
+from sb3_hhp.train import read_checkpoint  # noqa: E402
 
 
 def newest_checkpoint(run: str) -> tuple[str, int, str]:
-    pointers = glob.glob(str(pathlib.Path(run) / "**" / "checkpoint.json"), recursive=True)
-    if not pointers:
+    """The model, step count and replay of a run's newest checkpoint (the runner's and the training command's readers)."""
+    folder = latest_checkpoint(pathlib.Path(run))
+    if folder is None:
         raise SystemExit(f"{run} holds no checkpoint.json (runs write them with --checkpoint-freq)")
-    newest = max(pointers, key=lambda path: json.loads(pathlib.Path(path).read_text())["timesteps"])
-    checkpoint = json.loads(pathlib.Path(newest).read_text())
-    folder = pathlib.Path(newest).parent
-    return str(folder / checkpoint["model"]), int(checkpoint["timesteps"]), str(folder / checkpoint["replay"])
+    checkpoint = read_checkpoint(str(folder))
+    return checkpoint["model"], checkpoint["timesteps"], checkpoint["replay"]
 
 
 def key_carried(env: gym.Env, seed: int, heading: int) -> np.ndarray:
