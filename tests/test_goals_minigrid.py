@@ -9,7 +9,7 @@ from minigrid.core.constants import COLOR_TO_IDX, COLORS, DIR_TO_VEC, OBJECT_TO_
 from minigrid.core.world_object import Ball, Key
 
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
-from sb3_hhp.goals.minigrid import GOAL_OUT_OF_REACH
+from sb3_hhp.goals.minigrid import GOAL_OUT_OF_REACH, NO_GOAL_SQUARE
 from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query
 from sb3_hhp.oracles.scripted import plan_keys
 
@@ -290,8 +290,8 @@ def test_plan_of_a_state_that_needs_the_key_in_hand() -> None:
 def test_choosable_subgoals_are_one_skill_away() -> None:
     """The meta-controller's mask: a sub-goal already achieved is not choosable; with the same carried object
     only objects one interacts with; a change of what is carried only as a pick-up of the object in front (then
-    facing the emptied cell) or a drop onto the empty cell in front (then facing the dropped object); success
-    always."""
+    facing the emptied cell) or a drop of what is carried, whatever is in front (then facing the dropped object);
+    success always (without what the state holds)."""
     space = MiniGridGoalSpace()
     key_, wall, empty, door, goal = (OBJECT_TO_IDX[name] for name in ("key", "wall", "empty", "door", "goal"))
     facing_key = (empty, key_, 0)
@@ -313,7 +313,9 @@ def test_choosable_subgoals_are_one_skill_away() -> None:
     assert not space.choosable(carrying, (key_, empty, 0))  # already carrying it: just a turn
     assert space.choosable(carrying, (key_, door, 2))  # walking to the locked door with the key
     assert space.choosable((key_, door, 2), (key_, door, 0))  # opening it
-    assert not space.choosable(carrying, (empty, key_, 0))  # a wall in front: turning, then dropping it
+    assert space.choosable(carrying, (empty, key_, 0))  # a wall in front: turning to a free cell, dropping it
+    assert space.choosable((key_, door, 0), (empty, key_, 0))  # the door just opened: dropping the key there
+    assert not space.choosable((key_, door, 0), (empty, door, 0))  # dropping it, then facing the door: two skills
     assert space.choosable((key_, empty, 0), (empty, key_, 0))  # dropping it: the key lies in front
     assert not space.choosable((key_, empty, 0), (empty, empty, 0))  # dropping it, then turning away
     assert not space.choosable(carrying, (empty, empty, 0))
@@ -325,7 +327,7 @@ def test_choosable_subgoals_are_one_skill_away() -> None:
     assert not colored.choosable((empty, 0, key_, 4, 0), (key_, 1, empty, 0, 0))  # the key in front is yellow, not green
     assert not colored.choosable((empty, 0, key_, 4, 0), (key_, 4, door, 4, 2))
     assert colored.choosable((key_, 4, empty, 0, 0), (empty, 0, key_, 4, 0))
-    assert not colored.choosable((key_, 4, empty, 0, 0), (empty, 0, key_, 1, 0))
+    assert not colored.choosable((key_, 4, empty, 0, 0), (empty, 0, key_, 1, 0))  # it drops the key it carries
 
 
 def test_walks_are_choosable_only_to_objects_within_reach() -> None:
@@ -399,8 +401,15 @@ def test_within_reach_is_a_flood_fill_through_passable_cells() -> None:
     obs[3, 2] = (wall, 0, 0)
     assert space.present(obs) == {(key_, 0), GOAL_OUT_OF_REACH}
     obs[1, 1] = (empty, 0, 0)
-    assert space.present(obs) == {(key_, 0)}  # no goal square: nothing is out of reach
-    assert space.choosable((empty, empty, 0), SUCCESS_KEY, space.present(obs))
+    present = space.present(obs)
+    assert present == {(key_, 0), NO_GOAL_SQUARE}  # no goal square: nothing is out of reach, the task ends with a pick-up
+    # so "task solved" is one skill away only with empty hands in front of an object to pick up
+    assert not space.choosable((empty, empty, 0), SUCCESS_KEY, present)
+    assert space.choosable((empty, ball, 0), SUCCESS_KEY, present)
+    assert space.choosable((empty, key_, 0), SUCCESS_KEY, present)
+    assert not space.choosable((key_, ball, 0), SUCCESS_KEY, present)  # the key must be put down first
+    assert not space.choosable((empty, door, opened), SUCCESS_KEY, present)
+    assert space.choosable((empty, empty, 0), SUCCESS_KEY)  # without present: always
 
 
 def test_features_are_one_hots_of_carried_front_and_the_objects_present() -> None:

@@ -42,6 +42,9 @@ PASSABLE = {OBJECT_TO_IDX[name] for name in ("empty", "floor", "goal")}
 DOOR, GOAL, OPEN, LOCKED = OBJECT_TO_IDX["door"], OBJECT_TO_IDX["goal"], STATE_TO_IDX["open"], STATE_TO_IDX["locked"]
 #: in :meth:`MiniGridGoalSpace.present`: the grid has a goal square, and none is within reach
 GOAL_OUT_OF_REACH = "goal out of reach"
+#: in :meth:`MiniGridGoalSpace.present`: the grid has no goal square, so the task ends with a pick-up (KeyCorridor,
+#: ObstructedMaze, Fetch: the mission's object)
+NO_GOAL_SQUARE = "no goal square"
 MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
 N_OBJECTS, N_COLORS, N_STATES = len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE_TO_IDX)
 #: the frame drawn around the cells a sub-goal concerns (a colour MiniGrid's objects never have)
@@ -182,7 +185,8 @@ class MiniGridGoalSpace(GoalSpace):
         """The objects within reach: those the agent can walk to and face without opening anything on the way
         (through empty cells, floor, open doors and goal squares), each as (object, state), or (object, colour,
         state) with ``use_color``; the agent's cell (the carried object) is left out. When the grid has a goal
-        square and none is within reach, the set also holds :data:`GOAL_OUT_OF_REACH`."""
+        square and none is within reach, the set also holds :data:`GOAL_OUT_OF_REACH`; when it has none,
+        :data:`NO_GOAL_SQUARE`."""
         obs = np.asarray(obs)
         center = obs.shape[0] // 2
         objects, states = obs[..., 0], obs[..., 2]
@@ -196,29 +200,39 @@ class MiniGridGoalSpace(GoalSpace):
         columns = (0, 1, 2) if self.use_color else (0, 2)
         cells = obs[near & interactive][:, columns]
         within = frozenset(map(tuple, np.unique(cells, axis=0).tolist()))
-        if (objects == GOAL).any() and not (cells[:, 0] == GOAL).any():
+        if not (objects == GOAL).any():
+            within |= {NO_GOAL_SQUARE}
+        elif not (cells[:, 0] == GOAL).any():
             within |= {GOAL_OUT_OF_REACH}
         return within
 
     def choosable(self, key: Hashable, goal_key: Hashable, present: Optional[frozenset] = None) -> bool:
         """Not achieved in the state, and one skill away from it: with the same carried object, facing an
         object one interacts with (walk there, or open the door in front); with a different one, a pick-up of
-        the object in front (the agent then faces the emptied cell) or a drop onto the empty cell in front
-        (it then faces what it dropped): walking to the key and picking it up are two choices, not one. With
-        ``present`` (:meth:`present`), a walk is choosable only to an object within reach in that state ("facing
-        the locked door" not once it is open, nothing behind a locked door), a toggle of the object in front
-        always, and "task solved" only while a goal square is within reach (or the grid has none).
-        "Facing a wall / an empty cell" is never worth a choice of its own, and "carrying the key, facing the
-        locked door" is not chosen before the key is carried: such choices ask a subpolicy for two skills in
-        a row, and both its success rate and the meta-controller's values then mix two tasks."""
+        the object in front (the agent then faces the emptied cell) or a drop of what is carried (turning to a
+        free cell if need be; it then faces what it dropped): walking to the key and picking it up are two
+        choices, not one. A drop is a choice wherever the agent faces: were it one only in front of an empty
+        cell, no choice could put the key down once it has opened a door (the agent then faces the door), and
+        a task that ends by picking up an object behind that door (KeyCorridor) could not be planned with
+        choices. With ``present`` (:meth:`present`), a walk is choosable only to an object within reach in that
+        state ("facing the locked door" not once it is open, nothing behind a locked door), a toggle of the
+        object in front always, and "task solved" only while a goal square is within reach or, in a grid with
+        no goal square (the task ends with a pick-up), only with empty hands in front of an object one can pick
+        up. "Facing a wall / an empty cell" is never worth a choice of its own, and "carrying the key, facing
+        the locked door" is not chosen before the key is carried: such choices ask a subpolicy for two skills
+        in a row, and both its success rate and the meta-controller's values then mix two tasks."""
         if not super().choosable(key, goal_key):
             return False
         if key == SUCCESS_KEY:
             return True
-        if goal_key == SUCCESS_KEY:  # not while the goal square is out of reach (behind a locked door)
-            return present is None or GOAL_OUT_OF_REACH not in present
         front_at = 2 if self.use_color else 1
         carried, front = key[:front_at], key[front_at : 2 * front_at]  # (object[, colour]) carried / in front
+        if goal_key == SUCCESS_KEY:
+            if present is None:
+                return True
+            if NO_GOAL_SQUARE in present:  # a pick-up of the object in front
+                return carried[0] == EMPTY and front[0] in PICKABLE
+            return GOAL_OUT_OF_REACH not in present  # not while the goal square is behind a locked door
         goal_carried, goal_front = goal_key[:front_at], goal_key[front_at : 2 * front_at]
         if goal_carried == carried:
             if goal_front[0] not in INTERACTIVE:
@@ -230,8 +244,8 @@ class MiniGridGoalSpace(GoalSpace):
             return present is None or goal_object in present or toggle
         if carried[0] == EMPTY:  # a pick-up of the object in front; the agent then faces the emptied cell
             return front[0] in PICKABLE and goal_carried == front and goal_front[0] == EMPTY
-        # a drop onto the empty cell in front; the dropped object then lies in front
-        return front[0] == EMPTY and goal_carried[0] == EMPTY and goal_front == carried
+        # a drop (onto the empty cell in front, or after a turn to one); the dropped object then lies in front
+        return goal_carried[0] == EMPTY and goal_front == carried
 
     def features(self, obs: np.ndarray) -> np.ndarray:
         """What the preference predictor reads: one-hots of the carried object, the object in front and its
