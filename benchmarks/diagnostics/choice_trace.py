@@ -1,0 +1,89 @@
+"""What a trained HhP agent does, choice by choice: the sub-goals its meta-controller picks and which are reached.
+
+Loads a model (a ``.zip``, or a run folder's newest checkpoint, ``sb3_hhp.train --checkpoint-freq``) and plays
+fresh episodes with ``predict``, as ``evaluate_policy`` does. Every choice is recorded with the sub-goal key of the
+state it was made in, whether it was reached, and in how many primitive steps. Printed: the first episodes as
+chains of choices, then for every (state, chosen sub-goal) pair how often it was chosen and reached. A chain that
+loops (picking the key up, dropping it) or a choice that never succeeds shows where a run is stuck.
+
+    python benchmarks/diagnostics/choice_trace.py logs/hhp/MiniGrid-KeyCorridorS4R3-v0_1 \\
+        --env MiniGrid-KeyCorridorS4R3-v0 --episodes 20 --out trace.json
+"""
+
+import argparse
+import json
+import pathlib
+import sys
+from collections import Counter
+
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
+from benchmarks.diagnostics.key_skills import newest_checkpoint  # noqa: E402
+from sb3_hhp import HhP  # noqa: E402
+from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
+from sb3_hhp.hierarchy.options import option_terminal  # noqa: E402
+
+import gymnasium as gym  # noqa: E402
+
+
+def trace_episode(model: HhP, env: gym.Env, seed: int, deterministic: bool) -> dict:
+    """One episode: its choices ``(state key, chosen sub-goal, reached, steps)`` and whether the task was solved."""
+    obs, _ = env.reset(seed=seed)
+    describe = model.goal_space.describe
+    state, start, choices, solved = None, True, [], False
+    current, since = None, None
+    while True:
+        action, state = model.predict(obs, state=state, episode_start=np.array([start]), deterministic=deterministic)
+        goal, steps = int(state[0][0]), int(state[1][0])
+        if steps == 1:  # a new choice was made in this state
+            current = dict(state=describe(model.goal_space.key(obs)), goal=describe(model.subgoals[goal].key),
+                           reached=False, steps=0)
+            choices.append(current)
+            since = goal
+        obs, reward, terminated, truncated, _ = env.step(action)
+        start = False
+        current["steps"] += 1
+        achieved, _ = option_terminal(model.goal_space, model.goal_space.key(obs), model.subgoals[since].key, steps,
+                                      model.max_subgoal_steps)
+        current["reached"] = current["reached"] or bool(achieved)
+        if terminated or truncated:
+            solved = bool(terminated and reward > 0)
+            return dict(seed=seed, solved=solved, choices=choices)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("model", help="a model .zip, or a run's log folder (its newest checkpoint is loaded)")
+    parser.add_argument("--env", default="MiniGrid-KeyCorridorS4R3-v0")
+    parser.add_argument("--episodes", type=int, default=20, help="fresh episodes (seeds --seed, --seed + 1, ...)")
+    parser.add_argument("--seed", type=int, default=20_000)
+    parser.add_argument("--stochastic", action="store_true", help="the stochastic policy (default: deterministic)")
+    parser.add_argument("--show", type=int, default=3, help="episodes printed choice by choice")
+    parser.add_argument("--out", default=None, help="write every episode's choices as JSON here")
+    args = parser.parse_args()
+    path = pathlib.Path(args.model)
+    model_path = str(path) if path.suffix == ".zip" else newest_checkpoint(str(path))[0]
+    register_minigrid_tasks()
+    model = HhP.load(model_path, device="cpu")
+    env = wrap_env(gym.make(args.env))
+    episodes = [trace_episode(model, env, args.seed + i, not args.stochastic) for i in range(args.episodes)]
+    for episode in episodes[: args.show]:
+        chain = " -> ".join(f"{c['goal']}{'' if c['reached'] else ' (failed)'}" for c in episode["choices"])
+        print(f"seed {episode['seed']} ({'solved' if episode['solved'] else 'not solved'}, "
+              f"{len(episode['choices'])} choices): {chain[:1500]}\n")
+    chosen, reached = Counter(), Counter()
+    for episode in episodes:
+        for choice in episode["choices"]:
+            chosen[choice["state"], choice["goal"]] += 1
+            reached[choice["state"], choice["goal"]] += int(choice["reached"])
+    print(f"solved {sum(e['solved'] for e in episodes)} of {len(episodes)} episodes; choices made:")
+    print(f"{'chosen':>7} {'reached':>7}  in state -> sub-goal")
+    for (state_key, goal), count in chosen.most_common(30):
+        print(f"{count:7d} {reached[state_key, goal]:7d}  {state_key} -> {goal}")
+    if args.out:
+        pathlib.Path(args.out).write_text(json.dumps(dict(model=model_path, env=args.env, episodes=episodes), indent=1))
+
+
+if __name__ == "__main__":
+    main()
