@@ -493,8 +493,8 @@ def run_experiment(experiment: Experiment, sweep: Sweep, out: Union[str, Path]) 
         else:
             with contextlib.redirect_stdout(log_file), contextlib.redirect_stderr(log_file):
                 result = _run_baseline(experiment, sweep, out)
-    wall_seconds = time.perf_counter() - start
     summary = result["summary"]
+    wall_seconds = time.perf_counter() - start + earlier_parts_seconds(summary)
     curve = _curve_from_evaluations(attempt_evaluations(log_folder), out / "curves" / f"{experiment.name}.csv")
     return {
         "env": experiment.env,
@@ -509,10 +509,18 @@ def run_experiment(experiment: Experiment, sweep: Sweep, out: Union[str, Path]) 
         "labels_used": result["labels_used"],
         "eval_episodes": summary.get("eval_episodes"),
         "train_seconds": summary.get("train_seconds_all_parts", summary.get("train_seconds")),  # a resumed run's parts
-        "wall_seconds": round(wall_seconds, 1),
+        "wall_seconds": round(wall_seconds, 1),  # with a resumed run's earlier parts (their training)
         "curve": os.path.relpath(curve, out) if curve else None,
         "summary": os.path.relpath(result["summary_path"], out),
     }
+
+
+def earlier_parts_seconds(summary: dict[str, Any]) -> float:
+    """The training seconds of a resumed run's earlier parts, from its summary (0 for a run trained in one part):
+    what the run's wall time adds to this part's (their evaluations are not counted)."""
+    if summary.get("train_seconds_all_parts") is None:
+        return 0.0
+    return max(0.0, float(summary["train_seconds_all_parts"]) - float(summary.get("train_seconds") or 0.0))
 
 
 # ---------------------------------------------------------------------- the sweep

@@ -18,6 +18,7 @@ from benchmarks.run import (
     _curve_from_evaluations,
     _run_hhp,
     attempt_evaluations,
+    earlier_parts_seconds,
     latest_checkpoint,
     load_sweep,
     main,
@@ -290,6 +291,9 @@ def test_a_stopped_hhp_run_goes_on_from_its_last_checkpoint(tmp_path, monkeypatc
     command = commands[0]
     assert command[command.index("--checkpoint-freq") + 1] == "200000"
     assert command[command.index("--resume") + 1] == str(part2)
+    # the row's wall time counts the earlier parts' training too
+    assert earlier_parts_seconds({"train_seconds": 300.0, "train_seconds_all_parts": 1000.0}) == 700.0
+    assert earlier_parts_seconds({"train_seconds": 300.0}) == 0.0
 
 
 class FailedRun:
