@@ -363,7 +363,11 @@ def test_walks_are_choosable_only_to_objects_within_reach() -> None:
     assert present == {(door, opened), (goal, 0)}
     assert not space.choosable(carrying, (key_, door, locked), present)
     assert not space.choosable((key_, door, opened), (key_, door, locked), present)  # no toggle locks a door
-    assert space.choosable((key_, door, opened), (key_, door, STATE_TO_IDX["closed"]), present)  # one closes it
+    # closing the door in front is no choice: an open-close loop would succeed at every choice
+    assert not space.choosable((key_, door, opened), (key_, door, STATE_TO_IDX["closed"]), present)
+    assert space.choosable((key_, door, STATE_TO_IDX["closed"]), (key_, door, opened), present)  # opening it is
+    # walking to another closed door within reach stays a choice
+    assert space.choosable((key_, door, opened), (key_, door, STATE_TO_IDX["closed"]), present | {(door, STATE_TO_IDX["closed"])})
     assert space.choosable(carrying, (key_, door, locked))  # without present: the key-only rule
     assert space.choosable(carrying, (key_, door, opened), present)
     assert space.choosable(carrying, (key_, goal, 0), present)

@@ -215,8 +215,9 @@ class MiniGridGoalSpace(GoalSpace):
         cell, no choice could put the key down once it has opened a door (the agent then faces the door), and
         a task that ends by picking up an object behind that door (KeyCorridor) could not be planned with
         choices. With ``present`` (:meth:`present`), a walk is choosable only to an object within reach in that
-        state ("facing the locked door" not once it is open, nothing behind a locked door), a toggle of the
-        object in front always, and "task solved" only while a goal square is within reach or, in a grid with
+        state ("facing the locked door" not once it is open, nothing behind a locked door), opening the door in
+        front always (closing it never: no task needs it, and a loop of opening and closing succeeds at every
+        choice), and "task solved" only while a goal square is within reach or, in a grid with
         no goal square (the task ends with a pick-up), only with empty hands in front of an object one can pick
         up. "Facing a wall / an empty cell" is never worth a choice of its own, and "carrying the key, facing
         the locked door" is not chosen before the key is carried: such choices ask a subpolicy for two skills
@@ -239,8 +240,9 @@ class MiniGridGoalSpace(GoalSpace):
                 return False
             # walk to an object that is in the grid, or toggle the one in front (a door: only its state changes)
             goal_object = goal_key[front_at:]  # (object[, colour], state)
-            # (a toggle opens a locked or closed door or closes an open one; it never locks one)
-            toggle = goal_front == front and goal_key[-1] != LOCKED
+            # (a toggle opens a locked or closed door; closing one is no choice: no MiniGrid task needs a door
+            # closed, and an open-close loop succeeds at every choice)
+            toggle = goal_front == front and goal_key[-1] == OPEN
             return present is None or goal_object in present or toggle
         if carried[0] == EMPTY:  # a pick-up of the object in front; the agent then faces the emptied cell
             return front[0] in PICKABLE and goal_carried == front and goal_front[0] == EMPTY
