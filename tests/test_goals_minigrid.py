@@ -5,6 +5,7 @@ import gymnasium as gym
 import minigrid  # noqa: F401  (registers the MiniGrid envs)
 import numpy as np
 import pytest
+from minigrid.core.actions import Actions
 from minigrid.core.constants import COLOR_TO_IDX, COLORS, DIR_TO_VEC, OBJECT_TO_IDX, STATE_TO_IDX
 from minigrid.core.world_object import Ball, Key
 
@@ -614,3 +615,21 @@ def test_snapshots_are_compact_and_give_the_privileged_facts() -> None:
 
     own = OwnFacts()
     assert own.facts(own.snapshot(env)) == {"agent_pos": [1, 2]}
+
+
+def test_keep_doors_open_masks_the_toggle_that_would_close_the_door_in_front() -> None:
+    """With ``keep_doors_open`` the learners never close a door: ``toggle`` is masked where the cell in front is an
+    open door, and only there; without it there is no mask."""
+    door, empty = OBJECT_TO_IDX["door"], OBJECT_TO_IDX["empty"]
+    obs = np.zeros((3, 7, 7, 3), dtype=np.uint8)
+    obs[..., 0] = empty
+    obs[0, 3, 2] = (door, 1, STATE_TO_IDX["open"])  # in front of the agent at (3, 3), facing up
+    obs[1, 3, 2] = (door, 1, STATE_TO_IDX["closed"])
+    obs[2, 3, 4] = (door, 1, STATE_TO_IDX["open"])  # behind it
+    assert MiniGridGoalSpace().action_mask(obs) is None
+    mask = MiniGridGoalSpace(keep_doors_open=True).action_mask(obs)
+    assert mask.shape == (3, 7) and mask.dtype == bool
+    toggle = int(Actions.toggle)
+    assert mask[:, toggle].tolist() == [False, True, True]
+    assert np.delete(mask, toggle, axis=1).all()
+    assert MiniGridGoalSpace(keep_doors_open=True).action_mask(obs[0]).shape == (7,)  # one state

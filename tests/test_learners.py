@@ -382,3 +382,50 @@ def test_acting_reads_each_envs_own_learner_as_its_sb3_policy_does(goals: list) 
             expected = learners.policy(goal).q_net(th.as_tensor(obs[i : i + 1]))[0]
         th.testing.assert_close(q[i], expected)
     assert learners.act(np.array(goals), obs, deterministic=True).tolist() == q.argmax(dim=1).tolist()
+
+
+def no_action_0_where_x_is_positive(obs: np.ndarray) -> np.ndarray:
+    """A goal space's action mask for the tests: action 0 is not taken where the first coordinate is > 0."""
+    obs = np.asarray(obs)
+    mask = np.ones((*obs.shape[:-1], ACTIONS.n), dtype=bool)
+    mask[..., 0] = obs[..., 0] <= 0
+    return mask
+
+
+def test_masked_actions_are_never_taken_nor_in_the_targets_max(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With the goal space's action mask: acting (greedy and exploring) never takes a masked action, and the Double
+    DQN target chooses the next action among the allowed ones (SB3's target, the argmax restricted by hand)."""
+    learners = small_learners(action_mask=no_action_0_where_x_is_positive)
+    for goal in ("A", "B"):
+        learners.add(goal)
+    obs = np.random.default_rng(0).uniform(-1, 1, (400, 3)).astype(np.float32)
+    goals = np.arange(400) % 2
+    for deterministic in (True, False):  # epsilon is 1 before any own step: every action explores
+        actions = learners.act(goals, obs, deterministic=deterministic)
+        assert not (actions[obs[:, 0] > 0] == 0).any()
+    explored = learners.act(goals, obs)
+    assert set(explored[obs[:, 0] <= 0].tolist()) == {0, 1, 2} and set(explored[obs[:, 0] > 0].tolist()) == {1, 2}
+    fill(learners.replay, ["x"] * 8, acting=[0] * 8)
+    batch = fixed_batch(np.array([0, 1]), seed=2)
+    assert (batch.next_observations[..., 0] > 0).any() and (batch.next_observations[..., 0] <= 0).any()
+    monkeypatch.setattr(learners.replay, "sample", lambda goals, batch_size: batch)
+    expected = {}
+    for row, goal in enumerate((0, 1)):
+        policy = learners.policy(goal)
+        optimizer = th.optim.Adam(policy.q_net.parameters(), lr=0.01)
+        obs_t, next_obs = th.as_tensor(batch.observations[row]), th.as_tensor(batch.next_observations[row])
+        with th.no_grad():
+            online = policy.q_net(next_obs)
+            online[next_obs[:, 0] > 0, 0] = -th.inf  # the masked action is no candidate of the max
+            next_q = policy.q_net_target(next_obs).gather(1, online.argmax(dim=1, keepdim=True))[:, 0]
+            y = th.as_tensor(batch.returns[row]) + 0.81 * (1 - th.as_tensor(batch.dones[row])) * next_q
+        q = policy.q_net(obs_t).gather(1, th.as_tensor(batch.actions[row]).long()[:, None])[:, 0]
+        loss = (th.as_tensor(batch.weights[row]) * F.smooth_l1_loss(q, y, reduction="none")).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        th.nn.utils.clip_grad_norm_(policy.q_net.parameters(), 0.5)
+        optimizer.step()
+        expected[goal] = th.cat([p.detach().reshape(-1) for p in policy.q_net.parameters()])
+    learners.train(np.array([0, 1]))
+    for goal, params in expected.items():
+        th.testing.assert_close(learners.params[goal], params, rtol=1e-5, atol=1e-6)

@@ -12,7 +12,10 @@ from sb3_hhp.goals.minigrid import MiniGridEgocentricObs, MiniGridGoalSpace, fin
 #: in the order "auto" tries them
 GOAL_SPACES: dict[str, type[GoalSpace]] = {"minigrid": MiniGridGoalSpace, "fetch": FetchGoalSpace, "image": ImageGoalSpace}
 #: goal spaces with settings, by name (for the YAML): MiniGrid keys that tell objects apart by colour (several keys)
-NAMED_GOAL_SPACES = {"minigrid_color": lambda: MiniGridGoalSpace(use_color=True)}
+NAMED_GOAL_SPACES = {
+    "minigrid_color": lambda: MiniGridGoalSpace(use_color=True),
+    "minigrid_open_doors": lambda: MiniGridGoalSpace(keep_doors_open=True),
+}
 
 
 def wrap_env(env: gym.Env) -> gym.Env:

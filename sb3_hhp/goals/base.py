@@ -49,6 +49,11 @@ class GoalSpace(ABC):
         :meth:`present` says of the state (None: unknown)."""
         return not self.achieved(key, goal_key)
 
+    def action_mask(self, obs: np.ndarray) -> Optional[np.ndarray]:
+        """The primitive actions the sub-goal learners may take in each state of ``obs`` (a batch with any leading
+        shape), as booleans ``(*leading, n_actions)``; None: every action (the default)."""
+        return None
+
     def present(self, obs: np.ndarray) -> Optional[frozenset]:
         """What is in the state beyond its key, as far as :meth:`choosable` uses it (None: nothing; the
         default). States with equal keys and equal ``present`` get the same mask."""

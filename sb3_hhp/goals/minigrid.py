@@ -27,6 +27,7 @@ from stable_baselines3.common.monitor import Monitor
 from minigrid.core.constants import COLOR_TO_IDX, IDX_TO_OBJECT, OBJECT_TO_IDX, STATE_TO_IDX
 from minigrid.core.grid import Grid
 from minigrid.core.world_object import Box
+from minigrid.core.actions import Actions
 from minigrid.minigrid_env import MiniGridEnv
 
 from sb3_hhp.goals.base import SUCCESS_KEY, GoalSpace
@@ -143,15 +144,30 @@ class MiniGridGoalSpace(GoalSpace):
 
     :param use_color: distinguish objects by colour (needed when colours matter, e.g. several keys)
     :param tile_size: pixels per cell of the rendered images shown to people
+    :param keep_doors_open: the sub-goal learners never close the door in front (``toggle`` is masked there, in acting
+        and in their targets): a key names *a* closed door, not which, so the learner of "facing a closed door"
+        would otherwise reach it in one step by closing the door it has just opened (KeyCorridor; README, Design)
     """
 
     name = "minigrid"
 
-    def __init__(self, use_color: bool = False, tile_size: int = 16) -> None:
+    def __init__(self, use_color: bool = False, tile_size: int = 16, keep_doors_open: bool = False) -> None:
         if tile_size < 1:
             raise ValueError(f"tile_size must be >= 1, got {tile_size}")
         self.use_color = use_color
         self.tile_size = tile_size
+        self.keep_doors_open = bool(keep_doors_open)
+
+    def action_mask(self, obs: np.ndarray) -> Optional[np.ndarray]:
+        """With ``keep_doors_open``: every MiniGrid action but ``toggle`` in front of an open door (which would close it)."""
+        if not self.keep_doors_open:
+            return None
+        obs = np.asarray(obs)
+        center = obs.shape[-3] // 2
+        front = obs[..., center, center - 1, :]
+        mask = np.ones((*obs.shape[:-3], len(Actions)), dtype=bool)
+        mask[..., int(Actions.toggle)] = ~((front[..., 0] == DOOR) & (front[..., 2] == OPEN))
+        return mask
 
     @classmethod
     def supports(cls, env: gym.Env) -> bool:

@@ -517,7 +517,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             self.subpolicies = SUBGOAL_LEARNERS[self.subgoal_learner](
                 obs_space, self.primitive_action_space, self.goal_space.achieved, policy=self.subpolicy_policy,
                 subpolicy_kwargs=self.subpolicy_kwargs, alpha=alpha, n_envs=self.n_envs, device=device, seed=self.seed,
-                **learner,
+                action_mask=self.goal_space.action_mask, **learner,
             )
         else:
             self.subpolicies = PerGoalLearners(

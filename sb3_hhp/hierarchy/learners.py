@@ -104,6 +104,9 @@ class StackedDQN:
         grouped call: their batches drawn together and every gradient computed from the parameters as they were
         before the step, then applied round after round, each an Adam step of its own. A later round's gradient is
         thus one update old. False: one call per round, each from the parameters the round before left
+    :param action_mask: the primitive actions a learner may take in each state of a batch (the goal space's
+        :meth:`~sb3_hhp.goals.GoalSpace.action_mask`), applied to acting, exploring and the max of the targets;
+        None: every action
     """
 
     #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
@@ -125,6 +128,7 @@ class StackedDQN:
         seed: Optional[int] = None,
         max_updates: Optional[int] = None,
         grouped_rounds: bool = False,
+        action_mask: Optional[Callable[[np.ndarray], Optional[np.ndarray]]] = None,
     ) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
@@ -132,6 +136,7 @@ class StackedDQN:
                                         or max_updates < 1):
             raise ValueError(f"max_updates (subgoal_learner_kwargs) must be an integer >= 1 or None, got {max_updates!r}")
         self.max_updates = None if max_updates is None else int(max_updates)
+        self.action_mask = action_mask  # the goal space's (GoalSpace.action_mask): actions no learner takes in a state
         self.grouped_rounds = bool(grouped_rounds)
         self.rounds = 0  # learning rounds so far
         if exploration_steps < 1:
@@ -399,12 +404,23 @@ class StackedDQN:
     def act(self, goals: np.ndarray, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
         """One primitive action per env: sub-goal ``goals[i]``'s learner at ``obs[i]``, epsilon-greedy unless
         ``deterministic``."""
-        actions = self.q_values(goals, obs).argmax(dim=1).cpu().numpy()
+        q = self.q_values(goals, obs)
+        mask = None if self.action_mask is None else self.action_mask(np.asarray(obs))
+        if mask is not None:
+            q = q.masked_fill(~th.as_tensor(mask, dtype=th.bool, device=self.device), -th.inf)
+        actions = q.argmax(dim=1).cpu().numpy()
         if not deterministic:
             explore = self._rng.random(len(actions)) < np.array([self.exploration_rate(int(g)) for g in goals])
-            if explore.any():
+            if explore.any() and mask is None:
                 actions[explore] = self._rng.integers(int(self.action_space.n), size=int(explore.sum()))
+            elif explore.any():  # uniform over each state's allowed actions
+                actions[explore] = np.argmax(self._rng.random((int(explore.sum()), mask.shape[-1])) * mask[explore], axis=1)
         return actions
+
+    def _allowed(self, obs: np.ndarray) -> Optional[th.Tensor]:
+        """The goal space's mask of primitive actions for a batch of states (None: every action)."""
+        mask = None if self.action_mask is None else self.action_mask(obs)
+        return None if mask is None else th.as_tensor(mask, dtype=th.bool, device=self.device)
 
     # ------------------------------------------------------------------ learning
     def observe(self, obs: np.ndarray, actions: np.ndarray, next_obs: np.ndarray, keys: list, terminated: np.ndarray,
@@ -492,6 +508,9 @@ class StackedDQN:
                 next_q_online = next_q_target
             elif next_q_online is None:
                 next_q_online = self._vq(params.detach(), next_obs_t)
+            allowed = self._allowed(next_obs)
+            if allowed is not None:  # the max of the target over the actions a learner may take there
+                next_q_online = next_q_online.masked_fill(~allowed, -th.inf)
             next_q = next_q_target.gather(-1, next_q_online.argmax(-1, keepdim=True))[..., 0]
             y = as_t(batch.returns) + as_t(batch.discounts) * (1 - as_t(batch.dones)) * next_q[:, :n]
             if lower_bound:  # optimality tightening: the behaviour's return is a lower bound
@@ -763,12 +782,16 @@ class SharedHeadsDQN(StackedDQN):
         distinct, inverse = np.unique(pairs, return_inverse=True)
         inverse = inverse.reshape(len(closings), *grid)
         draw, offset = np.divmod(distinct, n_steps)
-        next_obs = self._tensor(replay.next_observations[(rows[draw] + offset) % replay.capacity, cols[draw]])
+        next_obs_np = replay.next_observations[(rows[draw] + offset) % replay.capacity, cols[draw]]
+        next_obs = self._tensor(next_obs_np)
         as_t = lambda x: th.as_tensor(x, device=self.device)  # noqa: E731
         heads = as_t(goals)[:, None]
         with th.no_grad():
             next_q_target = self.target_network(next_obs)  # (U, capacity, A)
             next_q_online = self.network(next_obs) if self.double_q else next_q_target
+            allowed = self._allowed(next_obs_np)
+            if allowed is not None:  # the max of the target over the actions a learner may take there
+                next_q_online = next_q_online.masked_fill(~allowed[:, None, :], -th.inf)  # (U, capacity, A)
             y = None
             for k, (_, k_returns, k_discounts, k_dones) in enumerate(closings):
                 index = as_t(inverse[k])
