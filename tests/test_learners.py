@@ -128,6 +128,27 @@ def fixed_batch(goals: np.ndarray, seed: int) -> GoalBatch:
     )
 
 
+def sb3_step(policy, batch: GoalBatch, row: int, mask=None) -> th.Tensor:
+    """One Double DQN step of SB3's policy on row ``row`` of ``batch`` (torch's Adam, clip_grad_norm_ 0.5), the next
+    action chosen among those ``mask`` allows: the parameters after it, flat."""
+    optimizer = th.optim.Adam(policy.q_net.parameters(), lr=0.01)
+    obs, next_obs = th.as_tensor(batch.observations[row]), th.as_tensor(batch.next_observations[row])
+    with th.no_grad():
+        online = policy.q_net(next_obs)
+        if mask is not None:  # a masked action is no candidate of the max
+            online[~th.as_tensor(mask(batch.next_observations[row]))] = -th.inf
+        next_action = online.argmax(dim=1, keepdim=True)  # double Q: online chooses
+        next_q = policy.q_net_target(next_obs).gather(1, next_action)[:, 0]  # target evaluates
+        y = th.as_tensor(batch.returns[row]) + 0.81 * (1 - th.as_tensor(batch.dones[row])) * next_q
+    q = policy.q_net(obs).gather(1, th.as_tensor(batch.actions[row]).long()[:, None])[:, 0]
+    loss = (th.as_tensor(batch.weights[row]) * F.smooth_l1_loss(q, y, reduction="none")).mean()
+    optimizer.zero_grad()
+    loss.backward()
+    th.nn.utils.clip_grad_norm_(policy.q_net.parameters(), 0.5)
+    optimizer.step()
+    return th.cat([p.detach().reshape(-1) for p in policy.q_net.parameters()])
+
+
 @pytest.mark.parametrize("due", [[0, 2], [0, 1, 2]])  # some sub-goals (gathered rows), all of them (in place)
 def test_one_grouped_update_equals_sb3s_double_dqn_step_for_every_subgoal(monkeypatch: pytest.MonkeyPatch,
                                                                           due: list) -> None:
@@ -140,20 +161,7 @@ def test_one_grouped_update_equals_sb3s_double_dqn_step_for_every_subgoal(monkey
     monkeypatch.setattr(learners.replay, "sample", lambda goals, batch_size: batch)
     expected = {}
     for row, goal in enumerate(goals):  # SB3's DQN policy, torch's Adam and clip_grad_norm_, one sub-goal at a time
-        policy = learners.policy(int(goal))
-        optimizer = th.optim.Adam(policy.q_net.parameters(), lr=0.01)
-        obs, next_obs = th.as_tensor(batch.observations[row]), th.as_tensor(batch.next_observations[row])
-        with th.no_grad():
-            next_action = policy.q_net(next_obs).argmax(dim=1, keepdim=True)  # double Q: online chooses
-            next_q = policy.q_net_target(next_obs).gather(1, next_action)[:, 0]  # target evaluates
-            y = th.as_tensor(batch.returns[row]) + 0.81 * (1 - th.as_tensor(batch.dones[row])) * next_q
-        q = policy.q_net(obs).gather(1, th.as_tensor(batch.actions[row]).long()[:, None])[:, 0]
-        loss = (th.as_tensor(batch.weights[row]) * F.smooth_l1_loss(q, y, reduction="none")).mean()
-        optimizer.zero_grad()
-        loss.backward()
-        th.nn.utils.clip_grad_norm_(policy.q_net.parameters(), 0.5)
-        optimizer.step()
-        expected[int(goal)] = th.cat([p.detach().reshape(-1) for p in policy.q_net.parameters()])
+        expected[int(goal)] = sb3_step(learners.policy(int(goal)), batch, row)
     untouched = learners.params[1].clone()
     learners.train(goals)
     for goal, params in expected.items():
@@ -411,21 +419,7 @@ def test_masked_actions_are_never_taken_nor_in_the_targets_max(monkeypatch: pyte
     monkeypatch.setattr(learners.replay, "sample", lambda goals, batch_size: batch)
     expected = {}
     for row, goal in enumerate((0, 1)):
-        policy = learners.policy(goal)
-        optimizer = th.optim.Adam(policy.q_net.parameters(), lr=0.01)
-        obs_t, next_obs = th.as_tensor(batch.observations[row]), th.as_tensor(batch.next_observations[row])
-        with th.no_grad():
-            online = policy.q_net(next_obs)
-            online[next_obs[:, 0] > 0, 0] = -th.inf  # the masked action is no candidate of the max
-            next_q = policy.q_net_target(next_obs).gather(1, online.argmax(dim=1, keepdim=True))[:, 0]
-            y = th.as_tensor(batch.returns[row]) + 0.81 * (1 - th.as_tensor(batch.dones[row])) * next_q
-        q = policy.q_net(obs_t).gather(1, th.as_tensor(batch.actions[row]).long()[:, None])[:, 0]
-        loss = (th.as_tensor(batch.weights[row]) * F.smooth_l1_loss(q, y, reduction="none")).mean()
-        optimizer.zero_grad()
-        loss.backward()
-        th.nn.utils.clip_grad_norm_(policy.q_net.parameters(), 0.5)
-        optimizer.step()
-        expected[goal] = th.cat([p.detach().reshape(-1) for p in policy.q_net.parameters()])
+        expected[goal] = sb3_step(learners.policy(goal), batch, row, mask=no_action_0_where_x_is_positive)
     learners.train(np.array([0, 1]))
     for goal, params in expected.items():
         th.testing.assert_close(learners.params[goal], params, rtol=1e-5, atol=1e-6)
