@@ -43,15 +43,14 @@ def test_replays_are_saved_and_loaded_whole(trained):
     shared, shared_loaded = model.subpolicies.replay, loaded.subpolicies.replay
     rows = shared.size()
     assert rows > 1000 and shared_loaded.size() == rows and shared_loaded.full == shared.full
-    for name in ("observations", "next_observations", "actions", "key_ids", "terminated", "truncated", "gave_up",
-                 "acting", "intrinsic"):
+    for name in ("observations", "next_observations", "actions", "key_ids", "terminated", "gave_up", "acting", "intrinsic"):
         np.testing.assert_array_equal(getattr(shared_loaded, name)[:rows], getattr(shared, name)[:rows], err_msg=name)
     np.testing.assert_array_equal(shared_loaded.trees._sum, shared.trees._sum)  # every sub-goal's priorities
     assert shared_loaded.goal_keys == shared.goal_keys and shared_loaded.keys == shared.keys
     # training goes on from fresh episodes: the newest transition of each env ends its returns (a time-limit cut)
     newest = rows - 1
     assert (shared_loaded.truncated[newest] | shared_loaded.terminated[newest]).all()
-    np.testing.assert_array_equal(shared_loaded.truncated[: newest], shared.truncated[: newest])
+    np.testing.assert_array_equal(shared_loaded.truncated[:newest], shared.truncated[:newest])  # the rest as saved
     # the next draws are the ones the saved model would have made
     goals = np.arange(len(shared.goal_keys))
     np.testing.assert_array_equal(shared_loaded.sample(goals, 16).leaves, shared.sample(goals, 16).leaves)

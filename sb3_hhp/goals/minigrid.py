@@ -150,6 +150,7 @@ class MiniGridGoalSpace(GoalSpace):
     """
 
     name = "minigrid"
+    keep_doors_open = False  # what a goal space pickled before the option reads
 
     def __init__(self, use_color: bool = False, tile_size: int = 16, keep_doors_open: bool = False) -> None:
         if tile_size < 1:
