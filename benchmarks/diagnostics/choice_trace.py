@@ -31,8 +31,7 @@ def trace_episode(model: HhP, env: gym.Env, seed: int, deterministic: bool) -> d
     """One episode: its choices ``(state key, chosen sub-goal, reached, steps)`` and whether the task was solved."""
     obs, _ = env.reset(seed=seed)
     describe = model.goal_space.describe
-    state, start, choices, solved = None, True, [], False
-    current, since = None, None
+    state, start, choices, current = None, True, [], None
     while True:
         action, state = model.predict(obs, state=state, episode_start=np.array([start]), deterministic=deterministic)
         goal, steps = int(state[0][0]), int(state[1][0])
@@ -40,16 +39,14 @@ def trace_episode(model: HhP, env: gym.Env, seed: int, deterministic: bool) -> d
             current = dict(state=describe(model.goal_space.key(obs)), goal=describe(model.subgoals[goal].key),
                            reached=False, steps=0)
             choices.append(current)
-            since = goal
         obs, reward, terminated, truncated, _ = env.step(action)
         start = False
         current["steps"] += 1
-        achieved, _ = option_terminal(model.goal_space, model.goal_space.key(obs), model.subgoals[since].key, steps,
+        achieved, _ = option_terminal(model.goal_space, model.goal_space.key(obs), model.subgoals[goal].key, steps,
                                       model.max_subgoal_steps)
         current["reached"] = current["reached"] or bool(achieved)
         if terminated or truncated:
-            solved = bool(terminated and reward > 0)
-            return dict(seed=seed, solved=solved, choices=choices)
+            return dict(seed=seed, solved=bool(terminated and reward > 0), choices=choices)
 
 
 def main() -> None:
