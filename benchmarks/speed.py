@@ -1,6 +1,6 @@
 """Speed and memory of HhP with the configuration users train with (the YAML entry of the env).
 
-Three measurements, one torch thread each unless ``--threads``:
+The measurements, one torch thread each unless ``--threads``:
 
 ``ratio``: HhP (the env's ``hyperparams/hhp.yml`` entry, with the scripted oracle and a preference file, as
 ``sb3_hhp.train`` builds it) against flat SB3 DQN doing the same learning work per
@@ -27,6 +27,14 @@ at ``--start`` steps), ``--repeats`` pairs of ``--profile-steps`` steps each::
 cost of a primitive step (after a warm-up) and the peak resident memory::
 
     python benchmarks/speed.py subgoals --env MiniGrid-DoorKey-8x8-v0 --out benchmarks/results/speed
+
+``floor``: what a primitive step cannot cost less than with the entry's learning work: the envs alone (random actions,
+the entry's observation wrapper) and one learning round's arithmetic alone (the sub-goal learners' batched matrix
+products at ``max_updates`` learners: the online forward pass over ``s`` and the closing states, the target's over
+the closing states, the written-out backward pass; then with the Adam step), each timed on its own; the steps per
+second a run could not exceed even if nothing else cost anything::
+
+    python benchmarks/speed.py floor --env MiniGrid-DoorKey-8x8-v0 --n-envs 8
 
 Results are JSON files under ``--out``; say the machine's load next to the figures (the script records the load
 average at its start and end).
@@ -56,7 +64,8 @@ from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
 from sb3_hhp import HhP
 from sb3_hhp.goals import wrap_env
-from sb3_hhp.hierarchy.learners import default_subpolicy_kwargs
+from sb3_hhp.hhp.hhp import SUBGOAL_LEARNER_DEFAULTS
+from sb3_hhp.hierarchy.learners import StackedDQN, default_subpolicy_kwargs
 from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry
 
 
@@ -233,9 +242,64 @@ def subgoals(args: argparse.Namespace) -> dict[str, Any]:
                 memory_ratio=round(high["peak_rss_mb"] / low["peak_rss_mb"], 3))
 
 
+def median_seconds(call: Any, repeats: int, blocks: int = 5) -> float:
+    """The median over ``blocks`` blocks of the mean seconds of ``call()`` over ``repeats`` calls (after a warm-up)."""
+    for _ in range(max(1, repeats // 10)):
+        call()
+    times = []
+    for _ in range(blocks):
+        begin = time.perf_counter()
+        for _ in range(repeats):
+            call()
+        times.append((time.perf_counter() - begin) / repeats)
+    return float(np.median(times))
+
+
+def floor(args: argparse.Namespace) -> dict[str, Any]:
+    _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
+    envs = make_envs(args.env, args.n_envs, args.seed)
+    envs.reset()
+    rng = np.random.default_rng(args.seed)
+    env_seconds = median_seconds(lambda: envs.step(rng.integers(envs.action_space.n, size=args.n_envs)), 200) / args.n_envs
+    # the sub-goal learners as HhP builds them, with as many learners as one round updates at most
+    learner_kwargs = {**SUBGOAL_LEARNER_DEFAULTS, **kwargs.get("subgoal_learner_kwargs", {})}
+    k = int(learner_kwargs["max_updates"] or 8)
+    learners = StackedDQN(envs.observation_space, envs.action_space, achieved=lambda key, goal: key == goal,
+                          subpolicy_kwargs=kwargs.get("subpolicy_kwargs"), n_envs=args.n_envs, seed=args.seed)
+    for goal in range(k):
+        learners.add(goal)
+    if not learners._relu_mlp:
+        raise SystemExit("floor times the written-out update of a ReLU MLP (MlpPolicy); this entry's learners are not one")
+    batch, closing = learners.batch_size, 2 * learners.batch_size if learners.replay.lower_bound else learners.batch_size
+    obs = th.as_tensor(np.stack([envs.observation_space.sample() for _ in range(k * (batch + closing))]))
+    x_online = learners._mlp_input(obs.reshape(k, batch + closing, *obs.shape[1:]))
+    x_target = x_online[:, batch:].contiguous()
+    params, goals = learners.params[:k], np.arange(k)
+    grad_q = th.randn(k, batch, int(envs.action_space.n)) / batch
+
+    def products() -> th.Tensor:
+        outputs = learners._mlp_forward(params, x_online)
+        with th.no_grad():
+            learners._mlp_forward(learners.target[:k], x_target)
+        return learners._mlp_backward(params, outputs, grad_q)
+
+    products_seconds = median_seconds(products, 100)
+    grad = products()
+    with_adam_seconds = median_seconds(lambda: learners._adam(goals, products(), 1), 100)
+    rounds_per_step = 1 / learners.train_freq
+    cap = lambda seconds: 1 / (env_seconds + rounds_per_step * seconds)  # noqa: E731
+    return dict(env=args.env, n_envs=args.n_envs, learners_per_round=k, batch_size=batch, rows_online=batch + closing,
+                rows_target=closing, input_size=int(x_online.shape[-1]), train_freq=learners.train_freq,
+                gradient_floats=int(grad.numel()),
+                env_steps_per_s=round(1 / env_seconds, 1), round_products_ms=round(1000 * products_seconds, 3),
+                round_with_adam_ms=round(1000 * with_adam_seconds, 3),
+                products_steps_per_s=round(1 / (rounds_per_step * products_seconds), 1),
+                cap_steps_per_s=round(cap(products_seconds), 1), cap_with_adam_steps_per_s=round(cap(with_adam_seconds), 1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["ratio", "late", "subgoals", "ab", "one"])
+    parser.add_argument("what", choices=["ratio", "late", "subgoals", "ab", "one", "floor"])
     parser.add_argument("--env", default="MiniGrid-DoorKey-8x8-v0")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--start", type=int, default=20_000, help="primitive steps before the timed window")
@@ -259,7 +323,7 @@ def main() -> None:
         return
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()[0]
-    result = {"ratio": ratio, "late": late, "subgoals": subgoals, "ab": learners_ab}[args.what](args)
+    result = {"ratio": ratio, "late": late, "subgoals": subgoals, "ab": learners_ab, "floor": floor}[args.what](args)
     result.update(threads=args.threads, load_average_start=round(load_before, 2), load_average_end=round(os.getloadavg()[0], 2),
                   command=" ".join(sys.argv))
     (pathlib.Path(args.out) / f"{args.name or args.what}.json").write_text(json.dumps(result, indent=2) + "\n")
