@@ -83,6 +83,25 @@ def test_subproc_vec_env() -> None:
         venv.close()
 
 
+def test_a_subproc_env_is_copied_only_while_its_facts_are_kept() -> None:
+    """Reading an env of a SubprocVecEnv copies it out of its process: at a choice, only while questions remain (the
+    oracle needs the state's facts) or states are drawn for people."""
+    venv = vec_env(2, vec_env_cls=SubprocVecEnv)
+    try:
+        model = HhP("MlpPolicy", venv, seed=0, oracle="scripted", **{**TINY, "query_budget": 0})
+        reads: list[str] = []
+        get_attr = venv.get_attr
+        venv.get_attr = lambda name, indices=None: reads.append(name) or get_attr(name, indices)
+        model.learn(800)
+        assert not model.options.record_privileged and len(model.subgoals) >= 1
+        assert "unwrapped" not in reads  # no questions to ask: no env copied
+        model.options.record_images = True  # states drawn for people: each choice's env is read
+        model.learn(400, reset_num_timesteps=False)
+        assert "unwrapped" in reads
+    finally:
+        venv.close()
+
+
 def test_a_model_moves_between_numbers_of_envs(tmp_path) -> None:
     model = HhP("MlpPolicy", gym.make(EMPTY), seed=0, **TINY)
     model.learn(800)

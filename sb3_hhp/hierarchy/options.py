@@ -210,7 +210,8 @@ class OptionRunner:
             trace = self.traces[env]
             trace.high_obs.append(self.choice_obs[env])
             trace.high_goals.append(int(goal))
-            view = env_view(self.venv, int(env))
+            # a SubprocVecEnv's env is copied to be read: only when its facts or its image are kept
+            view = env_view(self.venv, int(env)) if self.record_privileged or self.record_images else None
             trace.high_privileged.append(self.goal_space.snapshot(view) if self.record_privileged else None)
             if self.record_images:
                 trace.high_images.append(self.goal_space.render(view))
