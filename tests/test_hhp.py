@@ -246,6 +246,52 @@ def test_max_centred_bonus_subtracts_the_best_choosable_score(trained: HhP, monk
     assert not np.allclose(best, scores.max(axis=1))
 
 
+def test_with_success_bonus_best_the_task_solved_scores_as_the_best_other_choosable_subgoal(
+        trained: HhP, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``success_bonus="best"``: the task's own goal gets, in each state, the best score among the other choosable
+    sub-goals, so with ``center_bonus="max"`` its bonus is 0 and the other bonuses are taken from that best."""
+    replay = trained.replay_buffer.sample(8)
+    states = replay.observations.numpy().astype(np.uint8)
+    goal_obs = trained.goal_space.features(trained.goal_obs)
+    n_goals = len(goal_obs)
+    assert n_goals >= 3
+    scores = np.stack([trained.predictor.score(trained.goal_space.features(state), goal_obs) for state in states])
+    success = int(scores.mean(axis=0).argmin())  # a sub-goal the predictor dislikes, standing in for "task solved"
+    monkeypatch.setattr(HhP, "success_goal", property(lambda self: success))
+    mask = np.ones((len(states), trained.action_space.n), dtype=bool)
+    mask[:, (success + 1) % n_goals] = False  # one other sub-goal not choosable anywhere
+    monkeypatch.setattr(trained, "action_mask", lambda observations: mask)
+    others = mask[:, :n_goals] & (np.arange(n_goals) != success)
+    best_other = np.where(others, scores, -np.inf).max(axis=1)
+    goals = np.arange(len(states)) % n_goals
+    goals[:3] = success
+    predicted = trained.preference_bonus(states, goals)
+    monkeypatch.setattr(trained, "success_bonus", "best")
+    monkeypatch.setattr(trained, "center_bonus", "max")
+    bonus = trained.preference_bonus(states, goals)
+    np.testing.assert_allclose(bonus[:3], 0.0, atol=1e-6)
+    chosen = scores[np.arange(len(goals)), goals]
+    expected = np.where(goals == success, 0.0, np.minimum(chosen - best_other, 0.0))
+    np.testing.assert_allclose(bonus, expected, atol=1e-5)
+    assert (goals[3:] != success).any() and (expected[3:] < 0).any()
+    assert not np.allclose(predicted[:3], 0.0)  # the predictor alone scores the stand-in otherwise
+    monkeypatch.setattr(trained, "center_bonus", False)
+    np.testing.assert_allclose(trained.preference_bonus(states, goals)[:3], best_other[:3], rtol=1e-5, atol=1e-6)
+
+
+def test_with_success_bonus_best_no_question_compares_the_task_solved() -> None:
+    """The task's own goal is judged by the extrinsic reward alone: it is in no question (and is in some without)."""
+    solved = []
+    for success_bonus in ("predicted", "best"):
+        model = make_model(EMPTY, query_budget=40, success_bonus=success_bonus)
+        model.learn(3_000)
+        success = model.success_goal
+        assert success is not None and model.query_selector.used > 0
+        questions = [model.store.get_query(query_id) for query_id in model.store.asked_ids()]
+        solved.append(sum(success in (query.goal1, query.goal2) for query in questions))
+    assert solved[0] > 0 and solved[1] == 0
+
+
 def test_the_bonus_of_a_sampled_choice_is_cached_until_the_predictor_or_the_subgoals_change(trained: HhP) -> None:
     """The meta-controller's updates read each stored choice's bonus from a cache: equal to a fresh
     ``preference_bonus``, and scored again once the predictor has trained or a row holds a new choice."""
@@ -409,6 +455,7 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
         (dict(env=EMPTY, beta=-0.1), r"beta must be in \[0, 1\], got -0.1"),
         (dict(env=EMPTY, predictor_kwargs=dict(dropout=1.0)), r"dropout'\] must be in \[0, 1\), got 1.0"),
         (dict(env=EMPTY, center_bonus="median"), "center_bonus must be True / 'mean', 'max' or False, got 'median'"),
+        (dict(env=EMPTY, success_bonus="neutral"), "success_bonus must be 'predicted' or 'best', got 'neutral'"),
         (dict(env=EMPTY, discovery="none"), "subgoals="),
         (dict(env=EMPTY, discovery="everything"), "discovery must be"),
         (dict(env=EMPTY, subgoal_learner_kwargs=dict(share_experience=False, train_shared=True)),

@@ -42,8 +42,9 @@ def trace_episode(model: HhP, env: gym.Env, seed: int, deterministic: bool) -> d
         obs, reward, terminated, truncated, _ = env.step(action)
         start = False
         current["steps"] += 1
-        achieved, _ = option_terminal(model.goal_space, model.goal_space.key(obs), model.subgoals[goal].key, steps,
-                                      model.max_subgoal_steps)
+        # the key training reaches sub-goals by: "task solved" where the episode ends with a reward
+        key = model.goal_space.terminal_key(obs, float(reward), bool(terminated))
+        achieved, _ = option_terminal(model.goal_space, key, model.subgoals[goal].key, steps, model.max_subgoal_steps)
         current["reached"] = current["reached"] or bool(achieved)
         if terminated or truncated:
             return dict(seed=seed, solved=bool(terminated and reward > 0), choices=choices)

@@ -87,6 +87,10 @@ class BetweenEpisodes:
         for row, goal in enumerate(goals):
             for second in range(len(keys)):
                 exclude[row, second] = question_signature(state_ids[row], keys[goal], keys[second]) in asked
+        success = self.success_goal if self.success_bonus == "best" else None
+        if success is not None:  # the task's own goal is judged by the extrinsic reward alone: never in a question
+            exclude[:, success] = True
+            exclude[goals == success] = True
         selected = self.query_selector.select(confidences, goals, q_values, num_timesteps=self.num_timesteps, exclude=exclude)
         queries, repeated = [], 0
         for index, second in selected:  # line 26

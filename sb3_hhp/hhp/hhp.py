@@ -36,7 +36,7 @@ from sb3_hhp.curiosity.rnd import RND
 from sb3_hhp.discovery.csd import SubgoalDiscovery
 from sb3_hhp.dqn.buffers import buffer_state, load_buffer_state
 from sb3_hhp.dqn.dqn import DoubleDQN
-from sb3_hhp.goals import GoalSpace, make_goal_space, wrap_env
+from sb3_hhp.goals import SUCCESS_KEY, GoalSpace, make_goal_space, wrap_env
 from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, GridCNN, MlpPolicy, MultiInputPolicy
 from sb3_hhp.hhp.episodes import BetweenEpisodes
 from sb3_hhp.hierarchy.learners import PAPER_SUBPOLICY_KWARGS, SharedHeadsDQN, StackedDQN
@@ -239,6 +239,10 @@ class HhP(BetweenEpisodes, DoubleDQN):
         barely grows with the number of sub-goals); see the README's Design
     :param center_bonus: centre the preference bonus over the sub-goals of each state: True or "mean" subtracts
         their mean, "max" the best choosable one's score, so that no choice is paid (see the README's Design)
+    :param success_bonus: the preference bonus of choosing the task's own goal ("task solved",
+        :data:`~sb3_hhp.goals.SUCCESS_KEY`): "predicted" (default: the predictor's, as any sub-goal's) or "best" (the
+        state's best choosable score: the extrinsic reward alone judges that choice, and no question compares it;
+        see the README's Design)
     :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
         calls choosable there (:meth:`~sb3_hhp.goals.GoalSpace.choosable`: not already achieved; on MiniGrid,
         also a milestone); in acting, exploring and the TD target alike (see the README's Design)
@@ -285,6 +289,9 @@ class HhP(BetweenEpisodes, DoubleDQN):
     refused with the key to use (:data:`MOVED_ARGUMENTS`); models saved with them load as they were.
     """
 
+    #: models saved before ``success_bonus`` existed load with its default
+    success_bonus = "predicted"
+
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
         "CnnPolicy": CnnPolicy,
@@ -308,6 +315,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         subgoal_capacity: int = 16,
         subgoal_learner: str = "stacked",
         center_bonus: Union[bool, str] = "max",
+        success_bonus: str = "predicted",
         mask_subgoals: bool = True,
         predictor_input: str = "auto",
         meta_input: str = "auto",
@@ -362,6 +370,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
             raise ValueError(f"meta_input must be 'auto', 'features' or 'observation', got {meta_input!r}")
         if center_bonus not in (True, False, "mean", "max"):
             raise ValueError(f"center_bonus must be True / 'mean', 'max' or False, got {center_bonus!r}")
+        if success_bonus not in ("predicted", "best"):
+            raise ValueError(f"success_bonus must be 'predicted' or 'best', got {success_bonus!r}")
         self.query_kwargs = _grouped("query_kwargs", query_kwargs)
         self.predictor_kwargs = _grouped("predictor_kwargs", predictor_kwargs)
         self.discovery_kwargs = _grouped("discovery_kwargs", discovery_kwargs)
@@ -389,6 +399,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         self.oracle_kwargs = dict(oracle_kwargs or {})
         self.n_opt = n_opt
         self.center_bonus = center_bonus
+        self.success_bonus = success_bonus
         self.mask_subgoals = mask_subgoals
         self.subgoal_learner = subgoal_learner
         self.record_images = record_images
@@ -668,7 +679,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         """:meth:`preference_bonus` of sampled rows of R_H, scored once per row while the predictor and the sub-goal
         set (and the centring) stay the same (a row's bonus depends on nothing else): late in a run, when the budget is spent, the
         meta-controller's updates stop re-scoring the same choices."""
-        key = (self.predictor.version, len(self.subgoals), self.center_bonus, self.mask_subgoals, id(self.replay_buffer),
+        key = (self.predictor.version, len(self.subgoals), self.center_bonus, self.success_bonus, self.mask_subgoals, id(self.replay_buffer),
                self.replay_buffer.buffer_size)
         if getattr(self, "_bonus_key", None) != key:
             self._bonus_key = key
@@ -684,18 +695,36 @@ class HhP(BetweenEpisodes, DoubleDQN):
         """The preference bonus b = p_hat(s, g) (Algorithm 1 line 12), centred over the sub-goals when
         ``center_bonus``: b(s, g) - mean_g' p_hat(s, g') (True or "mean"), or b(s, g) - max_g' p_hat(s, g') over
         the sub-goals choosable in s ("max": never positive). Bradley-Terry (eq. 2) fixes scores only up to a
-        per-state constant, so the uncentred level is arbitrary shaping that can pay for dawdling."""
-        mask = self.action_mask(states) if self.center_bonus == "max" else None
+        per-state constant, so the uncentred level is arbitrary shaping that can pay for dawdling. With
+        ``success_bonus="best"`` the task's own goal scores as the best of the other sub-goals choosable in s."""
+        success = self.success_goal if self.success_bonus == "best" else None
+        mask = self.action_mask(states) if self.center_bonus == "max" or success is not None else None
         goal_obs, states = self.predictor_inputs(self.goal_obs), self.predictor_inputs(states)
-        if not self.center_bonus:
+        if not self.center_bonus and success is None:
             return self.predictor.score(states, goal_obs[goals])
         n_goals, n_states = len(goal_obs), len(states)
         scores = self.predictor.score_matrix(states, goal_obs)  # (n_states, n_goals)
+        choosable = (np.ones_like(scores, dtype=bool) if mask is None
+                     else np.broadcast_to(mask, (n_states, mask.shape[-1]))[:, :n_goals])
+        if success is not None:  # the best other choosable score (the success's own where it is the only choice)
+            others = choosable & (np.arange(n_goals) != success)
+            best_other = np.where(others, scores, -np.inf).max(axis=1)
+            scores[:, success] = np.where(np.isfinite(best_other), best_other, scores[:, success])
+        if not self.center_bonus:
+            return scores[np.arange(n_states), goals]
         if self.center_bonus == "max":
-            choosable = np.ones_like(scores, dtype=bool) if mask is None else np.broadcast_to(mask, (n_states, mask.shape[-1]))[:, :n_goals]
             best = np.where(choosable | (np.arange(n_goals) == np.asarray(goals)[:, None]), scores, -np.inf).max(axis=1)
             return scores[np.arange(n_states), goals] - best
         return scores[np.arange(n_states), goals] - scores.mean(axis=1)
+
+    @property
+    def success_goal(self) -> Optional[int]:
+        """The index of the task's own goal among the sub-goals (:data:`~sb3_hhp.goals.SUCCESS_KEY`), None before
+        it is found."""
+        for index, goal in enumerate(self.subgoals):
+            if goal.key == SUCCESS_KEY:
+                return index
+        return None
 
     # ------------------------------------------------------------------ acting
     def choose_subgoals(self, obs: np.ndarray, learning_starts: int = 0, deterministic: bool = False) -> np.ndarray:
