@@ -242,7 +242,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
     :param success_bonus: the preference bonus of choosing the task's own goal ("task solved",
         :data:`~sb3_hhp.goals.SUCCESS_KEY`): "predicted" (default: the predictor's, as any sub-goal's) or "best" (the
         state's best choosable score: the extrinsic reward alone judges that choice, and no question compares it;
-        see the README's Design)
+        see the design decisions)
     :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
         calls choosable there (:meth:`~sb3_hhp.goals.GoalSpace.choosable`: not already achieved; on MiniGrid,
         also a milestone); in acting, exploring and the TD target alike (see the README's Design)
