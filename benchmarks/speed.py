@@ -284,13 +284,12 @@ def floor(args: argparse.Namespace) -> dict[str, Any]:
         return learners._mlp_backward(params, outputs, grad_q)
 
     products_seconds = median_seconds(products, 100)
-    grad = products()
     with_adam_seconds = median_seconds(lambda: learners._adam(goals, products(), 1), 100)
     rounds_per_step = 1 / learners.train_freq
     cap = lambda seconds: 1 / (env_seconds + rounds_per_step * seconds)  # noqa: E731
     return dict(env=args.env, n_envs=args.n_envs, learners_per_round=k, batch_size=batch, rows_online=batch + closing,
                 rows_target=closing, input_size=int(x_online.shape[-1]), train_freq=learners.train_freq,
-                gradient_floats=int(grad.numel()),
+                gradient_floats=int(params.numel()),
                 env_steps_per_s=round(1 / env_seconds, 1), round_products_ms=round(1000 * products_seconds, 3),
                 round_with_adam_ms=round(1000 * with_adam_seconds, 3),
                 products_steps_per_s=round(1 / (rounds_per_step * products_seconds), 1),

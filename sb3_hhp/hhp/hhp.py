@@ -721,10 +721,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
     def success_goal(self) -> Optional[int]:
         """The index of the task's own goal among the sub-goals (:data:`~sb3_hhp.goals.SUCCESS_KEY`), None before
         it is found."""
-        for index, goal in enumerate(self.subgoals):
-            if goal.key == SUCCESS_KEY:
-                return index
-        return None
+        keys = self.subgoal_set.keys
+        return keys.index(SUCCESS_KEY) if SUCCESS_KEY in keys else None
 
     # ------------------------------------------------------------------ acting
     def choose_subgoals(self, obs: np.ndarray, learning_starts: int = 0, deterministic: bool = False) -> np.ndarray:
