@@ -10,7 +10,7 @@ from minigrid.core.constants import COLOR_TO_IDX, COLORS, DIR_TO_VEC, OBJECT_TO_
 from minigrid.core.world_object import Ball, Key
 
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
-from sb3_hhp.goals.minigrid import GOAL_OUT_OF_REACH, NO_GOAL_SQUARE
+from sb3_hhp.goals.minigrid import GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, NO_GOAL_SQUARE, OPEN_DOORS
 from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query
 from sb3_hhp.oracles.scripted import plan_keys
 
@@ -633,3 +633,61 @@ def test_keep_doors_open_masks_the_toggle_that_would_close_the_door_in_front() -
     assert mask[:, toggle].tolist() == [False, True, True]
     assert np.delete(mask, toggle, axis=1).all()
     assert MiniGridGoalSpace(keep_doors_open=True).action_mask(obs[0]).shape == (7,)  # one state
+
+
+def _doors(base) -> list:
+    return [base.grid.get(x, y) for x in range(base.width) for y in range(base.height)
+            if base.grid.get(x, y) is not None and base.grid.get(x, y).type == "door"]
+
+
+def test_count_open_doors_tells_opening_a_door_from_turning_to_an_open_one() -> None:
+    """With ``count_open_doors``, a key facing an open door holds how many doors are open: the toggle of the
+    closed door in front reaches (nothing, door, open, n + 1), turning to a door opened before reaches (..., n).
+    The mask offers each only where it is one skill away, the features count the open doors, and the scripted
+    oracle's plan names the keys the goal space reads."""
+    space = MiniGridGoalSpace(keep_doors_open=True, count_open_doors=True)
+    env = wrap_env(gym.make("MiniGrid-KeyCorridorS3R3-v0"))
+    env.reset(seed=5)
+    base = env.unwrapped
+    closed = [door for door in _doors(base) if not door.is_open and not door.is_locked]
+    assert len(closed) >= 2
+    first, second = closed[0], closed[1]
+    first.is_open = True  # one door opened before
+    # the agent in front of the second, closed, door
+    (dx, dy), = [(x, y) for x in range(base.width) for y in range(base.height) if base.grid.get(x, y) is second]
+    for direction, (vx, vy) in enumerate(DIR_TO_VEC):
+        cx, cy = dx - int(vx), dy - int(vy)
+        if base.grid.get(cx, cy) is None:
+            _place(base, (cx, cy), direction)
+            break
+    obs = env.observation(None)
+    closed_key = space.key(obs)
+    assert closed_key == (EMPTY, DOOR, STATE_TO_IDX["closed"])  # no count where the door in front is not open
+    present = space.present(obs)
+    assert (OPEN_DOORS, 1) in present
+    assert space.choosable(closed_key, (EMPTY, DOOR, OPEN, 2), present)  # open the door in front
+    assert not space.choosable(closed_key, (EMPTY, DOOR, OPEN, 3), present)  # two doors more: not one skill
+    reachable = (DOOR, OPEN) in present
+    assert space.choosable(closed_key, (EMPTY, DOOR, OPEN, 1), present) == reachable  # walk to the one open before
+    features = space.features(obs)
+    obs, *_ = env.step(int(Actions.toggle))
+    assert space.key(obs) == (EMPTY, DOOR, OPEN, 2)
+    assert (OPEN_DOORS, 2) in space.present(obs)
+    assert not space.choosable(space.key(obs), (EMPTY, DOOR, OPEN, 3), space.present(obs))  # toggling would close it
+    assert not np.array_equal(space.features(obs), features)
+    counted = space.features(np.stack([obs, obs]))[:, 2 * len(OBJECT_TO_IDX) + len(STATE_TO_IDX):][:, :MAX_COUNTED_DOORS]
+    assert counted.argmax(axis=1).tolist() == [2, 2] and counted.sum() == 2
+    assert MiniGridGoalSpace().key(obs) == (EMPTY, DOOR, OPEN)  # without the option: the three numbers
+    assert "2 open" in space.describe(space.key(obs))
+    # the oracle's plan counts the doors it opens on its way, from the doors open at the start
+    env.reset(seed=5)
+    keys = plan_keys(space.privileged(env), space)
+    opened = [key[-1] for key in keys if key != SUCCESS_KEY and key[1:3] == (DOOR, OPEN)]
+    assert opened and all(len(key) == 4 for key in keys if key != SUCCESS_KEY and key[1:3] == (DOOR, OPEN))
+    assert sorted(opened) == opened and opened[0] == 1
+    unlocked = [door for door in _doors(env.unwrapped) if not door.is_locked]
+    for door in unlocked:
+        door.is_open = True  # every door but the locked one open before the plan: it opens only the locked one
+    shifted = [key[-1] for key in plan_keys(space.privileged(env), space) if key != SUCCESS_KEY and key[1:3] == (DOOR, OPEN)]
+    assert set(shifted) <= {len(unlocked), len(unlocked) + 1} and len(unlocked) + 1 in shifted
+    env.close()

@@ -15,6 +15,7 @@ GOAL_SPACES: dict[str, type[GoalSpace]] = {"minigrid": MiniGridGoalSpace, "fetch
 NAMED_GOAL_SPACES = {
     "minigrid_color": lambda: MiniGridGoalSpace(use_color=True),
     "minigrid_open_doors": lambda: MiniGridGoalSpace(keep_doors_open=True),
+    "minigrid_count_doors": lambda: MiniGridGoalSpace(keep_doors_open=True, count_open_doors=True),
 }
 
 

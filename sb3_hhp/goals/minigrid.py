@@ -46,6 +46,10 @@ GOAL_OUT_OF_REACH = "goal out of reach"
 #: in :meth:`MiniGridGoalSpace.present`: the grid has no goal square, so the task ends with a pick-up (KeyCorridor,
 #: ObstructedMaze, Fetch: the mission's object)
 NO_GOAL_SQUARE = "no goal square"
+#: in :meth:`MiniGridGoalSpace.present` with ``count_open_doors``: ``(OPEN_DOORS, n)``, n doors of the grid are open
+OPEN_DOORS = "open doors"
+#: with ``count_open_doors``, the features tell 0 .. MAX_COUNTED_DOORS - 1 open doors apart (more count as the last)
+MAX_COUNTED_DOORS = 8
 MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
 N_OBJECTS, N_COLORS, N_STATES = len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE_TO_IDX)
 #: the frame drawn around the cells a sub-goal concerns (a colour MiniGrid's objects never have)
@@ -71,6 +75,12 @@ def find_minigrid(env: gym.Env) -> Optional[MiniGridEnv]:
     """The MiniGrid env underneath ``env`` (None when it is not a MiniGrid task)."""
     base = getattr(env, "unwrapped", env)
     return base if isinstance(base, MiniGridEnv) else None
+
+
+def open_doors(obs: np.ndarray) -> int:
+    """How many doors of the grid an observation (:class:`MiniGridEgocentricObs`) shows open."""
+    obs = np.asarray(obs)
+    return int(np.count_nonzero((obs[..., 0] == DOOR) & (obs[..., 2] == OPEN)))
 
 
 def egocentric_grid(base: MiniGridEnv) -> np.ndarray:
@@ -147,17 +157,25 @@ class MiniGridGoalSpace(GoalSpace):
     :param keep_doors_open: the sub-goal learners never close the door in front (``toggle`` is masked there, in acting
         and in their targets): a key names *a* closed door, not which, so the learner of "facing a closed door"
         would otherwise reach it in one step by closing the door it has just opened (KeyCorridor; README, Design)
+    :param count_open_doors: a key that faces an open door also holds how many doors of the grid are open, e.g.
+        ``(carried, door, open, 2)``: "open the door in front" is then a sub-goal of its own, which turning to a door
+        opened before does not reach (without it, the learner of "facing an open door" asked in front of a closed
+        door turns to the open one beside it, and the choice repeats without end; KeyCorridor, README, Design).
+        :meth:`present` then also holds ``(OPEN_DOORS, n)``
     """
 
     name = "minigrid"
-    keep_doors_open = False  # what a goal space pickled before the option reads
+    keep_doors_open = False  # what a goal space pickled before the options reads
+    count_open_doors = False
 
-    def __init__(self, use_color: bool = False, tile_size: int = 16, keep_doors_open: bool = False) -> None:
+    def __init__(self, use_color: bool = False, tile_size: int = 16, keep_doors_open: bool = False,
+                 count_open_doors: bool = False) -> None:
         if tile_size < 1:
             raise ValueError(f"tile_size must be >= 1, got {tile_size}")
         self.use_color = use_color
         self.tile_size = tile_size
         self.keep_doors_open = bool(keep_doors_open)
+        self.count_open_doors = bool(count_open_doors)
 
     def action_mask(self, obs: np.ndarray) -> Optional[np.ndarray]:
         """With ``keep_doors_open``: every MiniGrid action but ``toggle`` in front of an open door (which would close it)."""
@@ -188,8 +206,12 @@ class MiniGridGoalSpace(GoalSpace):
         carried = obs[center, center]
         front = obs[center, center - 1]
         if self.use_color:
-            return (int(carried[0]), int(carried[1]), int(front[0]), int(front[1]), int(front[2]))
-        return (int(carried[0]), int(front[0]), int(front[2]))
+            key = (int(carried[0]), int(carried[1]), int(front[0]), int(front[1]), int(front[2]))
+        else:
+            key = (int(carried[0]), int(front[0]), int(front[2]))
+        if self.count_open_doors and front[0] == DOOR and front[2] == OPEN:
+            key += (open_doors(obs),)
+        return key
 
     def is_milestone(self, key: Hashable, carried_before: Optional[int] = None) -> bool:
         """A key worth pursuing: facing an object one interacts with, the task solved, or a change of what is carried."""
@@ -221,6 +243,8 @@ class MiniGridGoalSpace(GoalSpace):
             within |= {NO_GOAL_SQUARE}
         elif not (cells[:, 0] == GOAL).any():
             within |= {GOAL_OUT_OF_REACH}
+        if self.count_open_doors:
+            within |= {(OPEN_DOORS, open_doors(obs))}
         return within
 
     def choosable(self, key: Hashable, goal_key: Hashable, present: Optional[frozenset] = None) -> bool:
@@ -256,11 +280,17 @@ class MiniGridGoalSpace(GoalSpace):
             if goal_front[0] not in INTERACTIVE:
                 return False
             # walk to an object that is in the grid, or toggle the one in front (a door: only its state changes)
-            goal_object = goal_key[front_at:]  # (object[, colour], state)
+            goal_object = goal_key[front_at : 2 * front_at + 1]  # (object[, colour], state)
             # (a toggle opens a locked or closed door; closing one is no choice: no MiniGrid task needs a door
             # closed, and an open-close loop succeeds at every choice)
-            toggle = goal_front == front and goal_key[-1] == OPEN
-            return present is None or goal_object in present or toggle
+            toggle = goal_front == front and goal_object[-1] == OPEN and key[2 * front_at] != OPEN
+            if present is None:
+                return True
+            if len(goal_key) > 2 * front_at + 1:  # count_open_doors: how many doors are open once it is reached
+                now = next((item[1] for item in present if isinstance(item, tuple) and item[0] == OPEN_DOORS), None)
+                if now is not None:  # walk to a door open now, or open the one in front: one door more
+                    return (goal_object in present and goal_key[-1] == now) or (toggle and goal_key[-1] == now + 1)
+            return goal_object in present or toggle
         if carried[0] == EMPTY:  # a pick-up of the object in front; the agent then faces the emptied cell
             return front[0] in PICKABLE and goal_carried == front and goal_front[0] == EMPTY
         # a drop (onto the empty cell in front, or after a turn to one); the dropped object then lies in front
@@ -269,7 +299,8 @@ class MiniGridGoalSpace(GoalSpace):
     def features(self, obs: np.ndarray) -> np.ndarray:
         """What the preference predictor reads: one-hots of the carried object, the object in front and its
         state (and, with ``use_color``, both colours), then which (object, state) pairs are present anywhere
-        in the grid (a locked door, an open door, a key on the floor, ...). Positions are left out, so the
+        in the grid (a locked door, an open door, a key on the floor, ...); with ``count_open_doors``, a one-hot of
+        how many doors are open comes before those. Positions are left out, so the
         description recurs across layouts and a hundred labels can teach a ranking of sub-goals that holds
         in every layout."""
         batch = np.asarray(obs).reshape(-1, *np.shape(obs)[-3:]).astype(np.int64)
@@ -284,6 +315,9 @@ class MiniGridGoalSpace(GoalSpace):
         ]
         if self.use_color:
             parts += [(colors[:, center, center], N_COLORS), (colors[:, center, center - 1], N_COLORS)]
+        if self.count_open_doors:  # how many doors are open, the last value for MAX_COUNTED_DOORS - 1 or more
+            opened = ((objects == DOOR) & (states == OPEN)).reshape(len(batch), -1).sum(axis=1)
+            parts.append((np.minimum(opened, MAX_COUNTED_DOORS - 1), MAX_COUNTED_DOORS))
         size = sum(n for _, n in parts) + N_OBJECTS * N_STATES
         out = np.zeros((len(batch), size), dtype=np.float32)
         offset = 0
@@ -352,9 +386,9 @@ class MiniGridGoalSpace(GoalSpace):
         if key == SUCCESS_KEY:
             return objects == GOAL
         if self.use_color:
-            carried, carried_color, front, front_color, _ = key
+            carried, carried_color, front, front_color, _ = key[:5]
         else:
-            (carried, front, _), carried_color, front_color = key, None, None
+            (carried, front, _), carried_color, front_color = key[:3], None, None
 
         def of_kind(kind: int, color: Optional[int]) -> np.ndarray:
             return (objects == kind) & (True if color is None else colors == color)
@@ -401,11 +435,13 @@ class MiniGridGoalSpace(GoalSpace):
         if key == SUCCESS_KEY:
             return "task solved"
         if self.use_color:
-            carried, _, front, _, state = key
+            carried, _, front, _, state = key[:5]
         else:
-            carried, front, state = key
+            carried, front, state = key[:3]
         front_name = IDX_TO_OBJECT.get(front, str(front))
         if front_name == "door":
             front_name = f"{IDX_TO_STATE.get(state, state)} door"
+            if len(key) == (6 if self.use_color else 4):  # with count_open_doors
+                front_name += f" ({key[-1]} open in all)"
         carried_name = "nothing" if carried == EMPTY else IDX_TO_OBJECT.get(carried, str(carried))
         return f"carrying {carried_name}, facing {front_name}"

@@ -36,7 +36,9 @@ def make_oracle(
         if goal_space.name == "minigrid":
             from sb3_hhp.oracles.scripted import MiniGridScriptedOracle
 
-            oracle: Oracle = MiniGridScriptedOracle(use_color=getattr(goal_space, "use_color", False), **kwargs)
+            oracle: Oracle = MiniGridScriptedOracle(use_color=getattr(goal_space, "use_color", False),
+                                                    count_open_doors=getattr(goal_space, "count_open_doors", False),
+                                                    **kwargs)
         elif goal_space.name == "fetch":
             from sb3_hhp.oracles.fetch import FetchScriptedOracle
 

@@ -81,12 +81,19 @@ def plan_keys(
         kept = tuple(change for change in changes if change[0] != x or change[1] != y)
         return tuple(sorted(kept + (((x, y, code),) if code != cells[x][y] else ())))
 
+    opened0 = sum(code[0] == _DOOR and code[2] == _OPEN for column in cells for code in column)
+
     def key_of(x: int, y: int, d: int, carried: tuple, changes: tuple) -> Hashable:
         dx, dy = DIR_TO_VEC[d]
         front = cell(x + dx, y + dy, changes)
         if goal_space.use_color:
-            return (int(carried[0]), int(carried[1]), int(front[0]), int(front[1]), int(front[2]))
-        return (int(carried[0]), int(front[0]), int(front[2]))
+            key = (int(carried[0]), int(carried[1]), int(front[0]), int(front[1]), int(front[2]))
+        else:
+            key = (int(carried[0]), int(front[0]), int(front[2]))
+        if goal_space.count_open_doors and front[0] == _DOOR and front[2] == _OPEN:
+            # the search opens doors and never closes one: those changed to open are the doors opened since the start
+            key += (opened0 + sum(code[0] == _DOOR and code[2] == _OPEN for _, _, code in changes),)
+        return key
 
     # A*: the heuristic counts the forward moves from the agent's cell to the nearest cell that ends the task,
     # through every cell the agent could ever stand on (anything but walls and lava: doors may open, objects may be
@@ -201,6 +208,7 @@ class MiniGridScriptedOracle(Oracle):
     :meth:`MiniGridGoalSpace.privileged`) and ``goal1_key`` / ``goal2_key``.
 
     :param use_color: must match the goal space's ``use_color``
+    :param count_open_doors: must match the goal space's ``count_open_doors``
     :param name: the annotator name recorded with its answers
     :param max_seconds: most seconds the plan of one question may take (answers run on the training thread): the
         first quarter searches a shortest plan; when none is found by then, the rest searches one at most
@@ -210,13 +218,13 @@ class MiniGridScriptedOracle(Oracle):
     """
 
     def __init__(self, use_color: bool = False, name: str = "scripted", max_seconds: float = 2.0,
-                 fallback_weight: float = 3.0) -> None:
+                 fallback_weight: float = 3.0, count_open_doors: bool = False) -> None:
         super().__init__(name)
         if not max_seconds > 0:
             raise ValueError(f"max_seconds must be > 0, got {max_seconds}")
         if not fallback_weight >= 1:
             raise ValueError(f"fallback_weight must be >= 1, got {fallback_weight}")
-        self.goal_space = MiniGridGoalSpace(use_color=use_color)
+        self.goal_space = MiniGridGoalSpace(use_color=use_color, count_open_doors=count_open_doors)
         self.max_seconds = float(max_seconds)
         self.fallback_weight = float(fallback_weight)
         self.last_plan_weight: Optional[float] = None  # which search found the last plan (1: a shortest one)
