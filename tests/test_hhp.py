@@ -923,7 +923,7 @@ def test_a_model_saved_with_the_ungrouped_arguments_loads_as_it_was_trained(tmp_
     assert (model.predictor.n_masks, model.predictor.dropout) == (7, 0.2)
     assert (model.discovery.similarity_threshold, model.discovery.min_visits, model.discovery.percentile) == (0.3, 3, 5.0)
     assert (model.subpolicies.max_updates, model.subpolicies.exploration_steps) == (5, 123)
-    assert model.discovery_kwargs == dict(percentile=5.0, min_visits=3, similarity_threshold=0.3)
+    assert model.discovery_kwargs == dict(percentile=5.0, min_visits=3, similarity_threshold=0.3, before_success=False)
     assert not any(hasattr(model, name) for name in MOVED_ARGUMENTS)  # grouped, not kept twice
     model.learn(200, reset_num_timesteps=False)
     model.save(tmp_path / "again")  # saved again, it loads with the same settings through the new arguments

@@ -7,7 +7,9 @@ training and whose similarity to every stored sub-goal is below ``similarity_thr
 (b_similarity) become new sub-goals. ``strategy="random"`` is the paper's ablation (Table 1): a
 random visited state passes the same visit and similarity gates. A state where the task was solved
 (:data:`~sb3_hhp.goals.base.SUCCESS_KEY`) is always a candidate: the task's own goal needs no
-curiosity to be worth pursuing.
+curiosity to be worth pursuing. With ``before_success``, so is the state visited just before it (e.g. facing the
+goal square): the last step of a solved task, which CSD may never rank among the lowest novelty progress while
+successes are rare, and without which the learner of "task solved" must cross the whole last room on its own.
 """
 
 from collections import Counter
@@ -29,7 +31,11 @@ class SubgoalDiscovery:
     :param similarity_threshold: b_similarity in [0, 1]: a candidate must be less similar than this to every sub-goal
     :param max_new: at most this many sub-goals per episode
     :param seed: seed of the random strategy and tie-breaking
+    :param before_success: the state visited just before a success is a candidate too (CSD only; it passes the same
+        visit and similarity gates)
     """
+
+    before_success = False  # what a discovery pickled before the option reads
 
     def __init__(
         self,
@@ -40,6 +46,7 @@ class SubgoalDiscovery:
         similarity_threshold: float = 0.5,
         max_new: int = 1,
         seed: Optional[int] = None,
+        before_success: bool = False,
     ) -> None:
         if strategy not in ("csd", "random"):
             raise ValueError(f"discovery strategy must be 'csd' or 'random', got {strategy!r}")
@@ -57,6 +64,7 @@ class SubgoalDiscovery:
         self.min_visits = min_visits
         self.similarity_threshold = similarity_threshold
         self.max_new = max_new
+        self.before_success = bool(before_success)
         self.rng = np.random.default_rng(seed)
 
     def select(
@@ -88,8 +96,11 @@ class SubgoalDiscovery:
             n_candidates = max(1, int(np.ceil(n * self.percentile / 100.0)))
             candidates = order[:n_candidates]
             # the task solved is the one situation that needs no curiosity to be worth a sub-goal
-            solved = [index for index in order[n_candidates:] if keys[index] == SUCCESS_KEY]
-            candidates = np.concatenate([solved[:1], candidates]).astype(np.int64)
+            solved = [index for index in order if keys[index] == SUCCESS_KEY][:1]
+            if self.before_success and solved and solved[0] > 0:
+                solved.append(solved[0] - 1)  # and, optionally, the state from which it was solved
+            solved = [index for index in solved if index not in candidates[: n_candidates]]
+            candidates = np.concatenate([solved, candidates]).astype(np.int64)
         else:
             candidates = self.rng.permutation(n)
         chosen: list[int] = []

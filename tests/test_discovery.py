@@ -1,0 +1,74 @@
+"""CSD's choice of new sub-goals (section 4.2.1, Algorithm 1 line 29): the lowest novelty progress, the visit and
+similarity gates, and the states of a solved task (sb3_hhp.discovery.csd)."""
+
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from sb3_hhp.discovery.csd import SubgoalDiscovery
+from sb3_hhp.goals.base import SUCCESS_KEY, GoalSpace
+
+class KeyedSpace(GoalSpace):
+    """A goal space whose states are their own keys (the default similarity: equal keys -> 1)."""
+
+    name = "keyed"
+
+    @classmethod
+    def supports(cls, env) -> bool:
+        return False
+
+    def key(self, obs):
+        return obs
+
+
+KEYS = ["a", "b", "c", "d", "e", "f", "g", "h", "i", "j"]
+
+
+def _select(discovery: SubgoalDiscovery, keys: list, rho: np.ndarray, visits: Counter, goal_keys: list = ()) -> list:
+    states = np.arange(len(keys), dtype=np.float32)[:, None]
+    goal_obs = np.zeros((len(goal_keys), 1), dtype=np.float32)
+    return discovery.select(states, keys, rho, visits, list(goal_keys), goal_obs)
+
+
+def test_csd_takes_the_lowest_novelty_progress_that_passes_the_gates() -> None:
+    """percentile 20 of 10 states: the two lowest rho are the candidates; the lowest is taken unless a gate stops it."""
+    discovery = SubgoalDiscovery(KeyedSpace(), percentile=20, min_visits=2, max_new=2, seed=0)
+    rho = np.array([0.5, -0.9, 0.1, -0.3, 0.2, 0.3, 0.4, 0.6, 0.7, -0.8])  # lowest: b (-0.9), then j (-0.8)
+    visits = Counter({key: 5 for key in KEYS})
+    assert _select(discovery, KEYS, rho, visits) == [1, 9]
+    assert _select(discovery, KEYS, rho, Counter({**visits, "b": 1})) == [9]  # b visited once: below min_visits
+    assert _select(discovery, KEYS, rho, visits, goal_keys=["j"]) == [1]  # j is a sub-goal already (similarity 1)
+    assert _select(SubgoalDiscovery(KeyedSpace(), percentile=20, max_new=1, seed=0), KEYS, rho, visits) == [1]
+    # the third lowest (d, -0.3) is outside the 20th percentile: never a candidate
+    assert _select(discovery, KEYS, rho, visits, goal_keys=["b", "j"]) == []
+
+
+def test_a_solved_task_and_optionally_the_state_before_it_are_always_candidates() -> None:
+    """The success state is a candidate whatever its rho; with ``before_success``, so is the state visited just
+    before it (here "h", whose rho is high), through the same gates."""
+    keys = KEYS[:8] + ["h2", SUCCESS_KEY]
+    rho = np.array([0.5, -0.9, 0.1, -0.3, 0.2, 0.3, 0.4, 0.6, 0.7, 0.8])
+    visits = Counter({key: 5 for key in keys})
+    plain = SubgoalDiscovery(KeyedSpace(), percentile=10, max_new=3, seed=0)
+    assert _select(plain, keys, rho, visits) == [9, 1]  # success first, then the lowest rho
+    before = SubgoalDiscovery(KeyedSpace(), percentile=10, max_new=3, seed=0, before_success=True)
+    assert _select(before, keys, rho, visits) == [9, 8, 1]
+    assert _select(before, keys, rho, visits, goal_keys=[SUCCESS_KEY, "h2"]) == [1]
+    assert _select(before, keys, rho, Counter({**visits, "h2": 1})) == [9, 1]  # the visit gate holds for it too
+    # an episode solved at its first recorded state has no state before it in the trace
+    assert _select(before, [SUCCESS_KEY, "a"], np.array([0.9, 0.1]), visits) == [0, 1]
+
+
+def test_random_discovery_passes_the_same_gates() -> None:
+    discovery = SubgoalDiscovery(KeyedSpace(), strategy="random", max_new=10, seed=0)
+    visits = Counter({key: 5 for key in KEYS})
+    chosen = _select(discovery, KEYS, None, Counter({**visits, "c": 1}), goal_keys=["a"])
+    assert sorted(KEYS[index] for index in chosen) == [key for key in KEYS if key not in ("a", "c")]
+
+
+@pytest.mark.parametrize("kwargs", [dict(strategy="novelty"), dict(percentile=0), dict(min_visits=0),
+                                    dict(similarity_threshold=1.5), dict(max_new=0)])
+def test_bad_settings_are_refused(kwargs: dict) -> None:
+    with pytest.raises(ValueError):
+        SubgoalDiscovery(KeyedSpace(), **kwargs)
