@@ -67,6 +67,11 @@ def test_the_shipped_sweeps_parse():
     smoke = load_sweep(EXPERIMENTS / "smoke.yml")
     assert [e.variant for e in smoke.experiments] == ["hhp", "dqn", "ppo", "ppo_rnd"]
     assert {e.steps for e in smoke.experiments} == {2000}
+    count_doors = load_sweep(EXPERIMENTS / "minigrid_count_doors.yml")
+    assert count_doors.hhp_options("hhp_count_doors") == (
+        "--hyperparams", "goal_space:'minigrid_count_doors'", "success_bonus:'best'")
+    for path in sorted(EXPERIMENTS.glob("*.yml")):  # every sweep shipped parses
+        assert load_sweep(path, check_envs=False).experiments, path.name
 
 
 def test_grid_defaults_and_per_env_budgets(tmp_path):

@@ -12,6 +12,7 @@ from minigrid.core.world_object import Ball, Key
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
 from sb3_hhp.goals.minigrid import GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, NO_GOAL_SQUARE, OPEN_DOORS
 from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query
+from sb3_hhp.oracles.registry import make_oracle
 from sb3_hhp.oracles.scripted import plan_keys
 
 EMPTY = OBJECT_TO_IDX["empty"]
@@ -691,3 +692,8 @@ def test_count_open_doors_tells_opening_a_door_from_turning_to_an_open_one() -> 
     shifted = [key[-1] for key in plan_keys(space.privileged(env), space) if key != SUCCESS_KEY and key[1:3] == (DOOR, OPEN)]
     assert set(shifted) <= {len(unlocked), len(unlocked) + 1} and len(unlocked) + 1 in shifted
     env.close()
+    # the goal space named for it, and the scripted oracle made for it, count too
+    named_env = wrap_env(gym.make("MiniGrid-KeyCorridorS3R3-v0"))
+    named = make_goal_space("minigrid_count_doors", named_env)
+    assert named.count_open_doors and named.keep_doors_open
+    assert make_oracle("scripted", named, named_env.observation_space).goal_space.count_open_doors
