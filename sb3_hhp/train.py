@@ -27,7 +27,8 @@ manager in memory.
 ``--checkpoint-freq N`` saves the model and its replays (:meth:`HhP.save_replay_buffer`) every N primitive steps in
 the run folder (``checkpoints/<steps>/``, ``checkpoint.json``), in place of the last; ``--resume RUN_FOLDER`` goes
 on from that checkpoint up to ``-n`` steps, on that run's preference database (RL Zoo's ``-i`` starts the step
-count again and a new database).
+count again and a new database). The part resumed draws its episodes and random numbers from :func:`resume_seed`
+(the run's seed and the checkpoint's step count), so it does not replay the layouts the run began with.
 
 ``--label-server`` serves the labeling page (:class:`~sb3_hhp.label.server.LabelServer`) on 127.0.0.1
 beside training, on the run's preference database, and implies ``--oracle web``.
@@ -434,12 +435,15 @@ def _experiment_manager_class() -> type:
             checkpoint = self.checkpoint
             print(f"Resuming {checkpoint['run_folder']} at {checkpoint['timesteps']} steps")
             os.makedirs(self.save_path, exist_ok=True)  # where this part's evaluations begin (benchmarks join the parts)
+            part_seed = resume_seed(self.seed, int(checkpoint["timesteps"]))
             with open(os.path.join(self.save_path, "resumed.json"), "w") as file:
-                json.dump({"run_folder": checkpoint["run_folder"], "timesteps": checkpoint["timesteps"]}, file)
+                json.dump({"run_folder": checkpoint["run_folder"], "timesteps": checkpoint["timesteps"],
+                           "seed": part_seed}, file)
             chosen = {key: hyperparams[key] for key in ("oracle", "preference_db") if hyperparams.get(key) is not None}
             model = HhP.load(checkpoint["model"], env=env, seed=self.seed, device=self.device, verbose=self.verbose,
                              tensorboard_log=self.tensorboard_log, **chosen)  # else the ones it was saved with
             model.load_replay_buffer(checkpoint["replay"])
+            model.set_random_seed(part_seed)  # the envs' next layouts, exploration and torch: not the run's first ones
             return model
 
         def learn(self, model: Any) -> None:
@@ -469,6 +473,24 @@ def _experiment_manager_class() -> type:
 
 
 # ---------------------------------------------------------------------- evaluation and summary
+
+
+def resume_seed(seed: int, timesteps: int) -> int:
+    """The seed of a run's part resumed at ``timesteps``: its envs' layouts, exploration and torch draws.
+
+    A resumed part seeded with the run's own seed would replay the episodes the run began with. This seed is drawn
+    from ``(seed, timesteps)`` (the same checkpoint resumes the same way) in ``[2**30, 2**31)``: above every
+    training seed ``seed .. seed + n_envs - 1`` and evaluation seed (:func:`eval_seeds`) of a run seeded below
+    ``2**30 - 10**6``, and below ``2**32`` with any env's rank added.
+
+    :param seed: the run's training seed (>= 0)
+    :param timesteps: the checkpoint's step count (>= 0)
+    """
+    if seed < 0 or timesteps < 0:
+        raise ValueError(f"seed and timesteps must be >= 0, got {seed} and {timesteps}")
+    state = int(np.random.SeedSequence([int(seed), int(timesteps)]).generate_state(1)[0])
+    return (1 << 30) + state % (1 << 30)
+
 
 
 def eval_seeds(seed: int, n_episodes: int, offset: int = EVAL_SEED_OFFSET) -> list[int]:
@@ -777,7 +799,8 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
     if manager.checkpoint is not None:
         trained = model.num_timesteps - manager.start_timesteps
         summary["fps"] = round(trained / manager.train_seconds, 1) if manager.train_seconds > 0 else None
-        summary["resumed_from"] = {"run_folder": manager.checkpoint["run_folder"], "timesteps": manager.start_timesteps}
+        summary["resumed_from"] = {"run_folder": manager.checkpoint["run_folder"], "timesteps": manager.start_timesteps,
+                                   "seed": resume_seed(manager.seed, int(manager.checkpoint["timesteps"]))}
         # every part's training up to the checkpoint this part resumed, and this part's (a part's steps after its
         # last checkpoint were trained again, and are not counted)
         summary["train_seconds_all_parts"] = round(manager.checkpoint["train_seconds"] + manager.train_seconds, 3)

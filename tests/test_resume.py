@@ -15,6 +15,7 @@ from stable_baselines3.common.save_util import save_to_pkl
 
 from sb3_hhp import HhP
 from sb3_hhp.goals import wrap_env
+from sb3_hhp.train import eval_seeds, resume_seed
 
 ENV = "MiniGrid-DoorKey-5x5-v0"
 
@@ -102,6 +103,17 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
                           text=True, timeout=600)
 
 
+def test_a_resumed_part_is_seeded_apart_from_the_run_and_its_evaluations():
+    seeds = {resume_seed(seed, steps) for seed in range(5) for steps in (0, 1000, 10_000, 2_000_000)}
+    assert len(seeds) == 20  # every (seed, checkpoint) resumes differently
+    assert resume_seed(3, 1000) == resume_seed(3, 1000)  # and the same checkpoint the same way
+    assert min(seeds) >= 2**30 and max(seeds) + 64 < 2**32  # any env's rank added, still a 32-bit seed
+    training_and_eval = set(range(5 + 64)) | {s for seed in range(5) for s in eval_seeds(seed, 1000)}
+    assert all(seed + rank not in training_and_eval for seed in seeds for rank in range(64))
+    with pytest.raises(ValueError, match=">= 0"):
+        resume_seed(-1, 0)
+
+
 @pytest.mark.slow
 def test_a_run_goes_on_from_its_checkpoint(tmp_path):
     """A run stopped at its checkpoint goes on with --resume: the step count goes on to -n, answers go to the same
@@ -123,15 +135,20 @@ def test_a_run_goes_on_from_its_checkpoint(tmp_path):
     assert second.returncode == 0, second.stderr[-3000:]
     summary2 = json.loads((tmp_path / "second.json").read_text())
     run2 = Path(summary2["log_path"])
-    assert run2 != run1 and summary2["resumed_from"] == {"run_folder": str(run1), "timesteps": checkpoint["timesteps"]}
+    part_seed = resume_seed(3, checkpoint["timesteps"])  # the part's layouts are not the ones the run began with
+    assert run2 != run1 and summary2["resumed_from"] == {"run_folder": str(run1), "timesteps": checkpoint["timesteps"],
+                                                         "seed": part_seed}
+    assert summary2["seed"] == 3  # the run's seed, which the evaluation seeds come from
     assert summary2["train_seconds_all_parts"] == pytest.approx(checkpoint["train_seconds"] + summary2["train_seconds"],
                                                                 abs=0.01)
     assert json.loads((run2 / "checkpoint.json").read_text())["train_seconds"] > checkpoint["train_seconds"]
-    assert 4000 <= summary2["total_timesteps"] <= 4000 + 250
+    # a rollout goes on until an episode ends: at most one DoorKey-5x5 episode (250 steps) of each of the 2 envs more
+    assert 4000 <= summary2["total_timesteps"] <= 4000 + 2 * 250
     assert summary2["preference_db"] == summary1["preference_db"]
     assert summary2["queries_used"] >= summary1["queries_used"]
     assert summary2["queries_asked"] == summary2["queries_distinct"] == summary2["queries_used"]  # none asked twice
-    assert json.loads((run2 / "resumed.json").read_text())["timesteps"] == checkpoint["timesteps"]
+    assert json.loads((run2 / "resumed.json").read_text()) == {"run_folder": str(run1), "timesteps": checkpoint["timesteps"],
+                                                               "seed": part_seed}
     timesteps = np.load(run2 / "evaluations.npz")["timesteps"]
     assert timesteps[0] > checkpoint["timesteps"]
 
