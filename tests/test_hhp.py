@@ -936,7 +936,7 @@ def test_moved_and_misspelt_grouped_arguments_are_refused_with_their_place() -> 
         HhP("MlpPolicy", gym.make(DOORKEY), t_qry=0.3)
     with pytest.raises(TypeError, match="unexpected keyword arguments"):
         HhP("MlpPolicy", gym.make(DOORKEY), not_an_argument=1)
-    with pytest.raises(ValueError, match="discovery_kwargs has no key 'b_similarity'; its keys are min_visits"):
+    with pytest.raises(ValueError, match="discovery_kwargs has no key 'b_similarity'; its keys are before_success, min_visits"):
         HhP("MlpPolicy", gym.make(DOORKEY), discovery_kwargs=dict(b_similarity=0.2))
     with pytest.raises(ValueError, match="predictor_kwargs has no key 'masks'"):
         HhP("MlpPolicy", gym.make(DOORKEY), predictor_kwargs=dict(masks=3))
