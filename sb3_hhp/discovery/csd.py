@@ -99,7 +99,7 @@ class SubgoalDiscovery:
             solved = [index for index in order if keys[index] == SUCCESS_KEY][:1]
             if self.before_success and solved and solved[0] > 0:
                 solved.append(solved[0] - 1)  # and, optionally, the state from which it was solved
-            solved = [index for index in solved if index not in candidates[: n_candidates]]
+            solved = [index for index in solved if index not in candidates]
             candidates = np.concatenate([solved, candidates]).astype(np.int64)
         else:
             candidates = self.rng.permutation(n)

@@ -14,8 +14,8 @@ convention). Every fact of a key can be read off the observation, so ``predict``
 sub-goal is reached without access to the environment.
 """
 
-from collections.abc import Hashable
-from typing import Any, Optional
+from collections.abc import Callable, Hashable, Sequence
+from typing import Any, Optional, Union
 
 import cv2
 import gymnasium as gym
@@ -77,10 +77,12 @@ def find_minigrid(env: gym.Env) -> Optional[MiniGridEnv]:
     return base if isinstance(base, MiniGridEnv) else None
 
 
-def open_doors(obs: np.ndarray) -> int:
-    """How many doors of the grid an observation (:class:`MiniGridEgocentricObs`) shows open."""
+def open_doors(obs: np.ndarray) -> Union[int, np.ndarray]:
+    """How many doors of the grid an observation (:class:`MiniGridEgocentricObs`) shows open; for a batch of
+    observations ``(N, S, S, 3)``, one count each."""
     obs = np.asarray(obs)
-    return int(np.count_nonzero((obs[..., 0] == DOOR) & (obs[..., 2] == OPEN)))
+    counts = np.count_nonzero((obs[..., 0] == DOOR) & (obs[..., 2] == OPEN), axis=(-2, -1))
+    return int(counts) if obs.ndim == 3 else counts
 
 
 def egocentric_grid(base: MiniGridEnv) -> np.ndarray:
@@ -203,14 +205,18 @@ class MiniGridGoalSpace(GoalSpace):
     def key(self, obs: np.ndarray) -> Hashable:
         obs = np.asarray(obs)
         center = obs.shape[0] // 2
-        carried = obs[center, center]
-        front = obs[center, center - 1]
+        return self.key_of(obs[center, center], obs[center, center - 1], lambda: open_doors(obs))
+
+    def key_of(self, carried: Sequence[int], front: Sequence[int], count_open: Callable[[], int]) -> Hashable:
+        """The key of a state from the encodings of the carried object and of the one in front; ``count_open()``
+        (how many doors of the grid are open) is called only where ``count_open_doors`` needs it. :meth:`key` reads
+        them from an observation, the scripted oracle from the grid its search changes."""
         if self.use_color:
             key = (int(carried[0]), int(carried[1]), int(front[0]), int(front[1]), int(front[2]))
         else:
             key = (int(carried[0]), int(front[0]), int(front[2]))
         if self.count_open_doors and front[0] == DOOR and front[2] == OPEN:
-            key += (open_doors(obs),)
+            key += (int(count_open()),)
         return key
 
     def is_milestone(self, key: Hashable, carried_before: Optional[int] = None) -> bool:
@@ -316,8 +322,7 @@ class MiniGridGoalSpace(GoalSpace):
         if self.use_color:
             parts += [(colors[:, center, center], N_COLORS), (colors[:, center, center - 1], N_COLORS)]
         if self.count_open_doors:  # how many doors are open, the last value for MAX_COUNTED_DOORS - 1 or more
-            opened = ((objects == DOOR) & (states == OPEN)).reshape(len(batch), -1).sum(axis=1)
-            parts.append((np.minimum(opened, MAX_COUNTED_DOORS - 1), MAX_COUNTED_DOORS))
+            parts.append((np.minimum(open_doors(batch), MAX_COUNTED_DOORS - 1), MAX_COUNTED_DOORS))
         size = sum(n for _, n in parts) + N_OBJECTS * N_STATES
         out = np.zeros((len(batch), size), dtype=np.float32)
         offset = 0

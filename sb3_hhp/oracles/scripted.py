@@ -85,15 +85,9 @@ def plan_keys(
 
     def key_of(x: int, y: int, d: int, carried: tuple, changes: tuple) -> Hashable:
         dx, dy = DIR_TO_VEC[d]
-        front = cell(x + dx, y + dy, changes)
-        if goal_space.use_color:
-            key = (int(carried[0]), int(carried[1]), int(front[0]), int(front[1]), int(front[2]))
-        else:
-            key = (int(carried[0]), int(front[0]), int(front[2]))
-        if goal_space.count_open_doors and front[0] == _DOOR and front[2] == _OPEN:
-            # the search opens doors and never closes one: those changed to open are the doors opened since the start
-            key += (opened0 + sum(code[0] == _DOOR and code[2] == _OPEN for _, _, code in changes),)
-        return key
+        # the search opens doors and never closes one: those changed to open are the doors opened since the start
+        return goal_space.key_of(carried, cell(x + dx, y + dy, changes), lambda: opened0 + sum(
+            code[0] == _DOOR and code[2] == _OPEN for _, _, code in changes))
 
     # A*: the heuristic counts the forward moves from the agent's cell to the nearest cell that ends the task,
     # through every cell the agent could ever stand on (anything but walls and lava: doors may open, objects may be
