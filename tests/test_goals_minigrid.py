@@ -99,6 +99,26 @@ def test_minigrids_own_observation_is_skipped_only_where_nothing_reads_it() -> N
     assert fast.unwrapped.gen_obs()["image"].shape == fast.unwrapped.observation_space["image"].shape
 
 
+@pytest.mark.parametrize("env_id", ["MiniGrid-DoorKey-8x8-v0", "MiniGrid-KeyCorridorS3R3-v0", "MiniGrid-ObstructedMaze-1Q-v1"])
+def test_the_grid_encoding_is_minigrids_own(env_id: str) -> None:
+    from sb3_hhp.goals.minigrid import encode_grid
+
+    env = gym.make(env_id)
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    seen_states = set()
+    for _ in range(400):  # random play opens, unlocks and picks up: doors' and boxes' encodings change
+        grid = env.unwrapped.grid
+        encoded = encode_grid(grid)
+        np.testing.assert_array_equal(encoded, grid.encode())
+        assert encoded.dtype == np.uint8 and encoded.shape == (grid.width, grid.height, 3)
+        seen_states.update(np.unique(encoded[..., 2]).tolist())
+        _, _, terminated, truncated, _ = env.step(int(rng.integers(env.action_space.n)))
+        if terminated or truncated:
+            env.reset()
+    assert len(seen_states) >= 2  # the state channel varied (doors of more than one state)
+
+
 @pytest.mark.parametrize("direction", [0, 1, 2, 3])
 def test_egocentric_obs_agent_at_centre_facing_up(doorkey5: MiniGridEgocentricObs, direction: int) -> None:
     base = doorkey5.unwrapped

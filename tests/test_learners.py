@@ -110,6 +110,27 @@ def test_goal_trees_draw_in_proportion_to_each_trees_priorities() -> None:
     assert (leaves[1] == 4).all() and np.allclose(probabilities[1], 1.0)
 
 
+def test_goal_trees_refresh_ancestors_lazily_to_the_sums_of_a_rebuilt_tree() -> None:
+    """New leaves added one run at a time (the usual case) and scattered (a wrap-around, several runs pending):
+    after the lazy refresh every node is the sum of its two children, as in a tree summed bottom-up."""
+    rng = np.random.default_rng(0)
+    trees = GoalTrees(3, 40)
+    for start in [0, 8, 16, 24, 32, 0, 8]:  # runs of 8 leaves, the last two written over the first (wrap-around)
+        trees.add(np.arange(start, start + 8), np.array([True, True, False]))
+        if start == 16:  # priorities set between adds, then scattered leaves pending with a run
+            trees.update(np.array([0, 1]), rng.integers(0, 24, (2, 5)), rng.uniform(0.1, 3.0, (2, 5)))
+            trees.add(np.arange(24, 32), np.array([True, True, True]))
+            trees.add(np.array([38, 39, 2]), np.array([True, False, True]))
+        totals = trees.total(np.arange(3))  # refreshes
+        expected = trees._sum.copy()
+        size = trees._size
+        for node in range(size - 1, 0, -1):  # bottom-up, from the leaves alone
+            expected[:, node] = expected[:, 2 * node] + expected[:, 2 * node + 1]
+        np.testing.assert_array_equal(trees._sum, expected)
+        np.testing.assert_array_equal(totals, expected[:, 1])
+    assert totals[0] > 0 and totals[1] > 0 and totals[2] == 0  # tree 2 took none of the last runs
+
+
 def small_learners(**kwargs) -> StackedDQN:
     sub_kwargs = dict(policy_kwargs=dict(net_arch=[8]), batch_size=4, learning_starts=4, train_freq=2, gamma=0.9,
                       target_update_interval=5, learning_rate=0.01, max_grad_norm=0.5, n_steps=1)

@@ -15,6 +15,7 @@ sub-goal is reached without access to the environment.
 """
 
 from collections.abc import Callable, Hashable, Sequence
+from itertools import chain
 from typing import Any, Optional, Union
 
 import cv2
@@ -85,10 +86,22 @@ def open_doors(obs: np.ndarray) -> Union[int, np.ndarray]:
     return int(counts) if obs.ndim == 3 else counts
 
 
+_EMPTY_CELL = (EMPTY, 0, 0)
+
+
+def encode_grid(grid: Grid) -> np.ndarray:
+    """``grid.encode()`` (every cell visible), the same array: (W, H, 3) uint8 indexed ``[x, y]``, an empty cell
+    ``(empty, 0, 0)``. MiniGrid's writes the array cell by cell; this reads the cells in one pass, in a third of the
+    time, which counts on every primitive step."""
+    cells = chain.from_iterable([_EMPTY_CELL if obj is None else obj.encode() for obj in grid.grid])  # [y * W + x]
+    flat = np.fromiter(cells, dtype=np.uint8, count=3 * len(grid.grid))
+    return flat.reshape(grid.height, grid.width, 3).transpose(1, 0, 2)
+
+
 def egocentric_grid(base: MiniGridEnv) -> np.ndarray:
     """The full grid encoding (W, H, 3) rotated so the agent is at the centre facing up, in a
     (2 * max(W, H) - 1)-square canvas indexed ``[x, y]``; cells outside the grid are 0 ("unseen")."""
-    full = base.grid.encode()  # (W, H, 3), [x, y]
+    full = encode_grid(base.grid)  # (W, H, 3), [x, y]
     ax, ay = (int(v) for v in base.agent_pos)
     if base.carrying is not None:
         full[ax, ay] = base.carrying.encode()
@@ -344,7 +357,7 @@ class MiniGridGoalSpace(GoalSpace):
             return {}
         target = getattr(base, "obj", None)  # KeyCorridor / ObstructedMaze: the object to pick up
         return {
-            "grid": base.grid.encode(),
+            "grid": encode_grid(base.grid),
             "agent_pos": [int(v) for v in base.agent_pos],
             "agent_dir": int(base.agent_dir),
             "carrying": list(base.carrying.encode()) if base.carrying is not None else None,

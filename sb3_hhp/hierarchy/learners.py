@@ -507,8 +507,11 @@ class StackedDQN:
             q = self._vq(params, self._tensor(batch.observations)).gather(-1, actions)[..., 0]
             next_q_online = None
         with th.no_grad():
-            next_obs_t = self._tensor(next_obs)
-            next_q_target = self._vq(self.target[index], next_obs_t)  # (T, B or 2B, A)
+            if self._relu_mlp:  # the closing states as the online pass read them (converted once)
+                next_q_target = self._mlp_forward(self.target[index], outputs[0][:, n:])[-1]  # (T, B or 2B, A)
+            else:
+                next_obs_t = self._tensor(next_obs)
+                next_q_target = self._vq(self.target[index], next_obs_t)
             if not self.double_q:
                 next_q_online = next_q_target
             elif next_q_online is None:
@@ -552,9 +555,10 @@ class StackedDQN:
         """Adam (torch's, its fused kernel) with each sub-goal's own step count, after clipping each sub-goal's
         gradient norm to ``max_grad_norm`` (as SB3 clips a model's); the rows of ``goals`` (distinct) are updated in
         place; ``round_number``: the learning round's."""
-        grad = grad * th.clamp(self.max_grad_norm / (grad.norm(dim=1, keepdim=True) + 1e-6), max=1.0)
-        self.adam_steps[goals] += 1
-        steps = [th.tensor(float(step), device=self.device) for step in self.adam_steps[goals]]
+        grad = grad.mul_(th.clamp(self.max_grad_norm / (grad.norm(dim=1, keepdim=True) + 1e-6), max=1.0))  # grad is ours
+        counts = self.adam_steps.numpy()  # the step counts (a CPU tensor), counted through a view of it
+        counts[goals] += 1
+        steps = [th.tensor(step, device=self.device) for step in counts[goals].tolist()]
         rows = self._adam_rows()
         th._fused_adam_([rows[0][g] for g in goals], list(grad.unbind(0)), [rows[1][g] for g in goals],
                         [rows[2][g] for g in goals], [], steps, lr=self.lr, beta1=betas[0], beta2=betas[1],

@@ -71,8 +71,15 @@ class GoalTrees:
     def _flush(self) -> None:
         if not self._pending:
             return
-        nodes = (np.unique(np.concatenate(self._pending)) + self._size) >> 1
+        leaves = np.unique(np.concatenate(self._pending))
         self._pending = []
+        if leaves[-1] - leaves[0] + 1 == len(leaves):  # one run of leaves (the usual case): its ancestors are runs too
+            low, high = (int(leaves[0]) + self._size) >> 1, (int(leaves[-1]) + self._size) >> 1
+            for _ in range(self._depth):
+                self._sum[:, low : high + 1] = self._sum[:, 2 * low : 2 * high + 2 : 2] + self._sum[:, 2 * low + 1 : 2 * high + 2 : 2]
+                low, high = low >> 1, high >> 1
+            return
+        nodes = (leaves + self._size) >> 1
         for _ in range(self._depth):
             nodes = np.unique(nodes)
             self._sum[:, nodes] = self._sum[:, 2 * nodes] + self._sum[:, 2 * nodes + 1]
