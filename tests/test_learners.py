@@ -192,16 +192,18 @@ def test_one_grouped_update_equals_sb3s_double_dqn_step_for_every_subgoal(monkey
     assert learners.n_updates.tolist() == [1, int(1 in due), 1]
 
 
+@pytest.mark.parametrize("plan", [[[0, 2], [0, 1, 2]], [[0, 1, 2], [0, 1, 2]], [[1, 2], [1, 2], [1, 2]]],
+                         ids=["other sub-goals", "the same (one pass)", "the same, not the first rows"])
 def test_grouped_rounds_compute_every_gradient_before_the_first_update_then_step_round_by_round(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    """grouped_rounds: two rounds due at one step ([0, 2] then [0, 1, 2]) in one call: each round's gradient from the
+        monkeypatch: pytest.MonkeyPatch, plan: list) -> None:
+    """grouped_rounds: rounds due at one step (e.g. [0, 2] then [0, 1, 2]) in one call: each round's gradient from the
     parameters as they were before the step (SB3's DQN loss, clipped as SB3 clips), then torch's Adam step of round 1,
-    then that of round 2."""
+    then that of round 2. Rounds of the same sub-goals, whose networks read all their rows in one pass, too."""
     learners = small_learners(grouped_rounds=True)
     for goal in ("A", "B", "C"):
         learners.add(goal)
     fill(learners.replay, ["x"] * 8, acting=[0] * 8)
-    plan = [np.array([0, 2]), np.array([0, 1, 2])]
+    plan = [np.array(goals) for goals in plan]
     batch = fixed_batch(np.concatenate(plan), seed=3)
     monkeypatch.setattr(learners.replay, "sample", lambda goals, batch_size: batch)
     policies = {goal: learners.policy(goal) for goal in range(3)}  # the parameters before the step
@@ -226,7 +228,8 @@ def test_grouped_rounds_compute_every_gradient_before_the_first_update_then_step
     for goal, policy in policies.items():
         expected = th.cat([p.detach().reshape(-1) for p in policy.q_net.parameters()])
         th.testing.assert_close(learners.params[goal], expected, rtol=1e-5, atol=1e-6)
-    assert learners.n_updates.tolist() == [2, 1, 2] and learners.adam_steps[:3].tolist() == [2, 1, 2]
+    counts = np.bincount(np.concatenate(plan), minlength=3).tolist()
+    assert learners.n_updates.tolist() == counts and learners.adam_steps[:3].tolist() == counts
 
 
 def test_updates_follow_the_train_frequency_in_one_call_whatever_the_number_of_subgoals(monkeypatch) -> None:

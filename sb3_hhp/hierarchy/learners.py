@@ -275,24 +275,26 @@ class StackedDQN:
             outputs.append(x)
         return outputs
 
-    def _mlp_backward(self, flat: th.Tensor, outputs: list[th.Tensor], grad_q: th.Tensor) -> th.Tensor:
+    def _mlp_backward(self, flat: th.Tensor, outputs: list[th.Tensor], grad_q: th.Tensor,
+                      rows: Optional[slice] = None) -> th.Tensor:
         """The gradient ``(T, P)`` of a loss with respect to the flat parameters of a ReLU MLP, from the gradient
-        ``grad_q`` ``(T, B, A)`` with respect to its Q-values at the first ``B`` inputs of ``outputs`` (a
-        :meth:`_mlp_forward` pass): backpropagation written out, a few batched matrix products."""
+        ``grad_q`` ``(T, B, A)`` with respect to its Q-values at the inputs ``rows`` of ``outputs`` (a
+        :meth:`_mlp_forward` pass; the first ``B`` by default): backpropagation written out, a few batched matrix
+        products."""
         params = self._unflatten(flat)
-        n = grad_q.shape[1]
+        n = slice(0, grad_q.shape[1]) if rows is None else rows
         grads: dict[str, th.Tensor] = {}
         grad = grad_q  # with respect to the output of the layer being undone
         for i in range(len(self._layers) - 1, -1, -1):
             kind, item = self._layers[i]
             if kind == "linear":
-                layer_input = outputs[i][:, :n]
+                layer_input = outputs[i][:, n]
                 grads[item + ".weight"] = th.bmm(grad.transpose(1, 2), layer_input)
                 grads[item + ".bias"] = grad.sum(dim=1)
                 if i > 0:
                     grad = th.bmm(grad, params[item + ".weight"])
             else:  # ReLU: the gradient passes where the output is positive
-                grad = grad * (outputs[i + 1][:, :n] > 0)
+                grad = grad * (outputs[i + 1][:, n] > 0)
         return th.cat([grads[name].reshape(len(flat), -1) for name in self._names], dim=1)
 
     def _grow(self, capacity: int) -> None:
@@ -487,8 +489,6 @@ class StackedDQN:
         parameters as they are now, then one Adam step per round, in order (``grouped_rounds``)."""
         goals = np.concatenate(plan) if len(plan) > 1 else np.asarray(plan[0])
         batch = self.replay.sample(goals, self.batch_size)
-        index = self._rows(goals)
-        params = self.params[index]
         as_t = lambda x: th.as_tensor(x, device=self.device)  # noqa: E731
         lower_bound = batch.behaviour_returns is not None
         # the closing states of the own returns and (lower bound) of the behaviour's
@@ -498,17 +498,36 @@ class StackedDQN:
         n = len(batch.returns[0])
         actions = as_t(batch.actions.reshape(len(goals), -1, 1).astype(np.int64))
         weights = as_t(batch.weights)
+        # rounds of the same sub-goals (grouped rounds before any sub-goal has to wait) read the same parameters: each
+        # network reads every round's rows in one pass, and no parameters are gathered twice
+        same = len(plan) > 1 and self._relu_mlp and all(np.array_equal(p, plan[0]) for p in plan[1:])
+        reps = len(plan) if same else 1
+        learners = len(goals) // reps
+        index = self._rows(goals[:learners])
+        params = self.params[index]
+
+        def per_learner(a: np.ndarray) -> np.ndarray:  # (reps * learners, m, ...) in plan order -> (learners, reps * m, ...)
+            if reps == 1:
+                return a
+            return a.reshape(reps, learners, *a.shape[1:]).swapaxes(0, 1).reshape(learners, -1, *a.shape[2:])
+
+        def per_round(t: th.Tensor) -> th.Tensor:  # the inverse, for the networks' outputs
+            if reps == 1:
+                return t
+            return t.reshape(learners, reps, -1, *t.shape[2:]).transpose(0, 1).reshape(reps * learners, -1, *t.shape[2:])
+
         if self._relu_mlp:  # one forward pass of the online networks over s and the closing states, backward by hand
-            outputs = self._mlp_forward(params, self._mlp_input(self._tensor(np.concatenate([batch.observations, next_obs], axis=1))))
-            q_all = outputs[-1]
-            q, next_q_online = q_all[:, :n].gather(-1, actions)[..., 0], q_all[:, n:]
+            x = np.concatenate([per_learner(batch.observations), per_learner(next_obs)], axis=1)
+            outputs = self._mlp_forward(params, self._mlp_input(self._tensor(x)))
+            q_s = per_round(outputs[-1][:, : reps * n])
+            q, next_q_online = q_s.gather(-1, actions)[..., 0], per_round(outputs[-1][:, reps * n :])
         else:
             params = params.detach().clone().requires_grad_()
             q = self._vq(params, self._tensor(batch.observations)).gather(-1, actions)[..., 0]
             next_q_online = None
         with th.no_grad():
             if self._relu_mlp:  # the closing states as the online pass read them (converted once)
-                next_q_target = self._mlp_forward(self.target[index], outputs[0][:, n:])[-1]  # (T, B or 2B, A)
+                next_q_target = per_round(self._mlp_forward(self.target[index], outputs[0][:, reps * n :])[-1])  # (T, B or 2B, A)
             else:
                 next_obs_t = self._tensor(next_obs)
                 next_q_target = self._vq(self.target[index], next_obs_t)
@@ -528,8 +547,10 @@ class StackedDQN:
         loss = (weights * F.smooth_l1_loss(q, y, reduction="none")).mean(dim=1)  # (T,): each sub-goal's own loss
         if self._relu_mlp:
             # d loss / d q: the Huber loss's derivative clamp(q - y, -1, 1), weighted, over the batch, at the actions taken
-            grad_q = th.zeros_like(q_all[:, :n]).scatter_(-1, actions, ((weights * (q - y).clamp(-1, 1)) / n)[..., None])
-            grad = self._mlp_backward(params, outputs, grad_q)
+            grad_q = th.zeros_like(q_s).scatter_(-1, actions, ((weights * (q - y).clamp(-1, 1)) / n)[..., None])
+            grads = [self._mlp_backward(params, outputs, grad_q[r * learners : (r + 1) * learners], slice(r * n, (r + 1) * n))
+                     for r in range(reps)]  # each round's gradient from its own rows
+            grad = grads[0] if reps == 1 else th.cat(grads)
         else:
             (grad,) = th.autograd.grad(loss.sum(), [params])
         start = 0
