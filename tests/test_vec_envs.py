@@ -2,6 +2,7 @@
 own sub-goal; predict and evaluate_policy on n envs; a model moves between numbers of envs; runs repeat given
 their seed; wrappers HhP cannot honour are refused."""
 
+import contextlib
 from typing import Any
 
 import gymnasium as gym
@@ -81,6 +82,38 @@ def test_subproc_vec_env() -> None:
         assert model.num_timesteps >= 800 and len(model.subgoals) >= 1
     finally:
         venv.close()
+
+
+class _HoldsALock(gym.Wrapper):
+    """An env whose unwrapped env holds what cannot be pickled (a lock)."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        import threading
+
+        env.unwrapped.lock = threading.Lock()
+
+
+def _lock_then_wrap(env: gym.Env) -> gym.Env:
+    return wrap_env(_HoldsALock(env))
+
+
+def test_a_subproc_env_that_cannot_be_pickled_is_refused_before_training() -> None:
+    import sys
+
+    import cloudpickle
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the worker processes get these classes by value
+    try:
+        venv = make_vec_env(EMPTY, n_envs=2, wrapper_class=_lock_then_wrap, vec_env_cls=SubprocVecEnv)
+    finally:
+        cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+    try:
+        with pytest.raises(ValueError, match="copy sent out of the env's process.*picklable attributes, or use a DummyVecEnv"):
+            HhP("MlpPolicy", venv, seed=0, **TINY)
+    finally:
+        with contextlib.suppress(BrokenPipeError):  # the worker that failed to send its env has ended
+            venv.close()
 
 
 def test_a_subproc_env_is_copied_only_while_its_facts_are_kept() -> None:

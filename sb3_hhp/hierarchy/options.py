@@ -139,7 +139,15 @@ def env_view(venv: VecEnv, index: int = 0) -> gym.Env:
         base = base.venv
     if isinstance(base, DummyVecEnv):
         return base.envs[index]
-    copy = base.get_attr("unwrapped", [index])[0]
+    try:
+        copy = base.get_attr("unwrapped", [index])[0]
+    except (EOFError, ConnectionError, TypeError, AttributeError) as error:  # the worker could not pickle its env
+        raise ValueError(
+            f"HhP reads env {index} of the {type(base).__name__} (its goal space, the facts of a question, the frames "
+            f"people see) as a copy sent out of the env's process, and that copy failed ({type(error).__name__}: "
+            f"{str(error) or 'the worker process ended'}; its traceback is printed above): give the env only picklable "
+            "attributes, or use a DummyVecEnv"
+        ) from error
     view = gym.Wrapper(copy)
     view.observation_space, view.action_space = venv.observation_space, venv.action_space
     return view
