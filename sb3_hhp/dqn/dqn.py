@@ -69,6 +69,11 @@ def double_q_target(
     return rewards.reshape(-1, 1) + gamma * (1 - dones.reshape(-1, 1)) * next_q
 
 
+
+def _fixed_extractor(q_net: th.nn.Module) -> bool:
+    """Whether an SB3 ``QNetwork``'s features extractor has no parameters (the same function in every copy)."""
+    return next(iter(q_net.features_extractor.parameters()), None) is None
+
 class DoubleDQN(DQN):
     """
     Double DQN with proportional prioritized experience replay.
@@ -333,8 +338,14 @@ class DoubleDQN(DQN):
         """The double-Q target of returns closed by ``next_obs`` (per-state masks when ``state_masks``)."""
         if state_masks:
             valid_actions = self._valid_actions_tensor(next_obs.cpu().numpy())
-        next_q_target = self.q_net_target(next_obs)
-        next_q_online = self.q_net(next_obs) if self.double_q else next_q_target
+        online, target = self.q_net, self.q_net_target
+        if self.double_q and _fixed_extractor(online) and type(online.features_extractor) is type(target.features_extractor):
+            # a features extractor without parameters (a fixed description): both networks read one extraction
+            features = online.extract_features(next_obs, online.features_extractor)
+            next_q_target, next_q_online = target.q_net(features), online.q_net(features)
+        else:
+            next_q_target = target(next_obs)
+            next_q_online = online(next_obs) if self.double_q else next_q_target
         return double_q_target(next_q_online, next_q_target, rewards, dones, discounts, valid_actions=valid_actions)
 
     # ------------------------------------------------------- action selection
