@@ -36,7 +36,7 @@ from sb3_hhp.curiosity.rnd import RND
 from sb3_hhp.discovery.csd import SubgoalDiscovery
 from sb3_hhp.dqn.buffers import buffer_state, load_buffer_state
 from sb3_hhp.dqn.dqn import DoubleDQN
-from sb3_hhp.goals import SUCCESS_KEY, GoalSpace, make_goal_space, wrap_env
+from sb3_hhp.goals import SUCCESS_KEY, GoalSpace, MiniGridGoalSpace, make_goal_space, wrap_env
 from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, GridCNN, MlpPolicy, MultiInputPolicy
 from sb3_hhp.hhp.episodes import BetweenEpisodes
 from sb3_hhp.hierarchy.learners import PAPER_SUBPOLICY_KWARGS, SharedHeadsDQN, StackedDQN
@@ -59,6 +59,9 @@ SUBGOAL_LEARNERS = {"heads": SharedHeadsDQN, "stacked": StackedDQN}
 
 #: the zip member of a saved model that holds the components beyond the meta-controller
 COMPONENTS_FILE = "hhp_components.pt"  # not .pth: SB3 loads every .pth member as weights only
+#: the MiniGrid observation a saved model's networks read: a canvas of side 2 * max(W, H) - 3 (goals.minigrid.egocentric_size)
+MINIGRID_CANVAS = "2*max(W,H)-3"
+OUTER_RING_CANVAS = "2*max(W,H)-1"  # the canvas of models saved before its always empty outer ring was left out
 REPLAY_FORMAT = "sb3_hhp.HhP.replay"  # the file of HhP.save_replay_buffer
 
 
@@ -195,10 +198,11 @@ def _holds(file: Any, data: bytes, prefix: bool = False) -> bool:
     return content.startswith(data) if prefix else data in content
 
 
-def _vec_env(env: Union[GymEnv, str, None]) -> Optional[VecEnv]:
+def _vec_env(env: Union[GymEnv, str, None], outer_ring: bool = False) -> Optional[VecEnv]:
     """The primitive envs under ``env`` as a VecEnv: an env id or a gym env becomes a DummyVecEnv of one env (with
     the observation its goal space reads, and a Monitor for SB3's episode statistics); a VecEnv is used as it is
-    (each env already wrapped, e.g. ``make_vec_env(ENV, n_envs=8, wrapper_class=sb3_hhp.goals.wrap_env)``)."""
+    (each env already wrapped, e.g. ``make_vec_env(ENV, n_envs=8, wrapper_class=sb3_hhp.goals.wrap_env)``).
+    ``outer_ring``: a MiniGrid env's canvas with its outer ring (models saved before it was left out)."""
     if env is None:
         return None
     if isinstance(env, str):
@@ -212,7 +216,7 @@ def _vec_env(env: Union[GymEnv, str, None]) -> Optional[VecEnv]:
         return check_vec_env(env)
     if not isinstance(env, gym.Env):
         raise ValueError(f"HhP needs a gymnasium env, an env id or a VecEnv, got {type(env).__name__}")
-    wrapped = wrap_env(env)
+    wrapped = wrap_env(env, outer_ring=outer_ring)
     return DummyVecEnv([lambda: wrapped if is_wrapped(wrapped, Monitor) else Monitor(wrapped)])
 
 
@@ -1006,6 +1010,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
             "consumed_query_ids": sorted(self.consumed_query_ids),
             "recent_choices": list(self.recent_choices),
             "oracle": self.oracle_spec if isinstance(self.oracle_spec, str) or self.oracle_spec is None else "none",
+            # the MiniGrid observation the networks read (absent from models saved before the outer ring was left out)
+            "minigrid_canvas": OUTER_RING_CANVAS if getattr(self, "minigrid_outer_ring", False) else MINIGRID_CANVAS,
         }
 
     def load_components_state(self, state: dict[str, Any]) -> None:
@@ -1075,6 +1081,10 @@ class HhP(BetweenEpisodes, DoubleDQN):
             raise ValueError(f"{path} is not a saved HhP model (not a zip archive): {error}") from error
         model = super().load(file, env=None, device=device, custom_objects=custom_objects,
                              print_system_info=print_system_info, force_reset=force_reset, **kwargs)
+        # a MiniGrid model saved before the canvas's outer ring was left out reads the canvas with it: raw envs given
+        # to it are wrapped so (set_env)
+        model.minigrid_outer_ring = (isinstance(getattr(model, "goal_space", None), MiniGridGoalSpace)
+                                     and components.get("minigrid_canvas", OUTER_RING_CANVAS) == OUTER_RING_CANVAS)
         model.load_components_state(components)
         if env is not None:
             model.set_env(env, force_reset=force_reset)
@@ -1117,12 +1127,18 @@ class HhP(BetweenEpisodes, DoubleDQN):
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """Attach (new) envs: an env, an env id or a VecEnv of any number of envs, whose sub-goals are the model's."""
-        venv = _vec_env(env)
+        outer_ring = getattr(self, "minigrid_outer_ring", False)
+        venv = _vec_env(env, outer_ring=outer_ring)
         assert venv is not None
         if venv.observation_space != self.primitive_observation_space:
+            hint = ""
+            if isinstance(self.goal_space, MiniGridGoalSpace):
+                hint = ("; this model reads MiniGrid's canvas with its outer ring (it was saved before that ring was left "
+                        "out): wrap its envs with sb3_hhp.goals.wrap_env(env, outer_ring=True), or give a raw env"
+                        if outer_ring else "; wrap MiniGrid envs with sb3_hhp.goals.wrap_env")
             raise ValueError(
                 f"The env's observation space {venv.observation_space} differs from the model's "
-                f"{self.primitive_observation_space}"
+                f"{self.primitive_observation_space}{hint}"
             )
         self.options = OptionRunner(venv, self.goal_space, self.subgoal_set, self.subpolicies, self.rnd,
                                     max_subgoal_steps=self.max_subgoal_steps)
