@@ -65,8 +65,8 @@ def test_wrap_env_and_goal_space_auto() -> None:
     raw = gym.make("MiniGrid-DoorKey-5x5-v0")
     wrapped = wrap_env(raw)
     assert isinstance(wrapped, MiniGridEgocentricObs)
-    # 5x5 grid -> a (2 * 5 - 1)-square egocentric canvas of (object, colour, state)
-    assert wrapped.observation_space.shape == (9, 9, 3)
+    # 5x5 grid -> a (2 * 5 - 3)-square egocentric canvas of (object, colour, state)
+    assert wrapped.observation_space.shape == (7, 7, 3)
     assert wrap_env(wrapped) is wrapped  # already wrapped: left alone
     assert isinstance(make_goal_space("auto", wrapped), MiniGridGoalSpace)
     obs, _ = wrapped.reset(seed=0)
@@ -97,6 +97,32 @@ def test_minigrids_own_observation_is_skipped_only_where_nothing_reads_it() -> N
             obs_fast, _ = fast.reset(seed=4)
             obs_reader, _ = reader.reset(seed=4)
     assert fast.unwrapped.gen_obs()["image"].shape == fast.unwrapped.observation_space["image"].shape
+
+
+@pytest.mark.parametrize("env_id", ["MiniGrid-DoorKey-8x8-v0", "MiniGrid-KeyCorridorS3R1-v0", "MiniGrid-MultiRoom-N2-S4-v0"])
+def test_the_canvas_leaves_out_only_its_always_empty_outer_ring(env_id: str) -> None:
+    """The egocentric canvas of side 2 * max(W, H) - 3 is the 2 * max(W, H) - 1 canvas (from which the agent sees the
+    whole grid wherever it stands) without its outer ring, which stays empty on every step of random play; with
+    ``outer_ring`` (models saved before) it is that larger canvas."""
+    ring = MiniGridEgocentricObs(gym.make(env_id), outer_ring=True)
+    cropped = MiniGridEgocentricObs(gym.make(env_id))
+    base = cropped.unwrapped
+    side = 2 * max(base.width, base.height) - 1
+    assert ring.observation_space.shape == (side, side, 3) and cropped.observation_space.shape == (side - 2, side - 2, 3)
+    obs_ring, _ = ring.reset(seed=1)
+    obs, _ = cropped.reset(seed=1)
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        assert not obs_ring[[0, -1]].any() and not obs_ring[:, [0, -1]].any()  # the ring is empty
+        np.testing.assert_array_equal(obs, obs_ring[1:-1, 1:-1])
+        assert cropped.observation_space.contains(obs)
+        action = int(rng.integers(cropped.action_space.n))
+        obs_ring, _, terminated, truncated, _ = ring.step(action)
+        obs, _, terminated_c, truncated_c, _ = cropped.step(action)
+        assert (terminated, truncated) == (terminated_c, truncated_c)
+        if terminated or truncated:
+            obs_ring, _ = ring.reset(seed=2)
+            obs, _ = cropped.reset(seed=2)
 
 
 @pytest.mark.parametrize("env_id", ["MiniGrid-DoorKey-8x8-v0", "MiniGrid-KeyCorridorS3R3-v0", "MiniGrid-ObstructedMaze-1Q-v1"])

@@ -472,13 +472,13 @@ def test_env_forms(trained: HhP) -> None:
     one = DummyVecEnv([lambda: wrap_env(gym.make(EMPTY))])
     for env in (EMPTY, gym.make(EMPTY), one):
         model = HhP("MlpPolicy", env, **tiny(predictor_kwargs=dict(n_masks=2)))
-        assert model.primitive_observation_space.shape == (9, 9, 3)
+        assert model.primitive_observation_space.shape == (7, 7, 3)
     for wrapper in (VecNormalize, lambda venv: VecFrameStack(venv, 4)):
         with pytest.raises(ValueError, match="cannot train under Vec.*Remove it"):
             HhP("MlpPolicy", wrapper(DummyVecEnv([lambda: wrap_env(gym.make(EMPTY))] * 2)))
     with pytest.raises(ValueError, match="observation space"):
         trained.set_env(gym.make("MiniGrid-DoorKey-8x8-v0"))
-    assert trained.options.venv.observation_space.shape == (9, 9, 3)  # left as it was
+    assert trained.options.venv.observation_space.shape == (7, 7, 3)  # left as it was
 
 
 def test_cartpole_error_names_the_fix() -> None:
