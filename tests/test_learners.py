@@ -297,6 +297,21 @@ def test_a_round_updates_at_most_max_updates_subgoals_the_pursued_first_then_the
         small_learners(max_updates=0)
 
 
+def test_freed_memory_is_handed_back_every_trim_every_rounds(monkeypatch: pytest.MonkeyPatch) -> None:
+    from sb3_hhp.hierarchy import learners as module
+
+    calls = []
+    monkeypatch.setattr(module, "release_free_memory", lambda: calls.append(learners.rounds))
+    monkeypatch.setattr(module, "TRIM_EVERY", 5)
+    learners = small_learners(train_shared=True)
+    learners.add("A")
+    fill(learners.replay, ["x"] * 8, acting=[0] * 8)
+    for _ in range(12):  # a round every 2 steps (train_freq): 6 more rounds
+        learners.observe(np.zeros((1, 3), np.float32), np.zeros(1, np.int64), np.zeros((1, 3), np.float32), ["x"],
+                         np.zeros(1, bool), np.zeros(1, bool), np.zeros(1, bool), np.zeros(1, np.int64), np.zeros(1, np.float32))
+    assert learners.rounds >= 6 and calls == [r for r in range(1, learners.rounds + 1) if r % 5 == 0]
+
+
 def test_epsilon_decays_with_a_subgoals_own_steps() -> None:
     learners = small_learners(exploration_steps=10)
     learners.add("A")

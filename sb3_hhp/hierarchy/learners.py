@@ -9,6 +9,8 @@ nor the Python overhead of a primitive step grows with the number of sub-goals. 
 gives any sub-goal's learner back as an SB3 ``DQNPolicy``.
 """
 
+import ctypes
+import ctypes.util
 from collections import deque
 from collections.abc import Callable, Hashable
 from typing import Any, Optional
@@ -52,6 +54,30 @@ DEFAULT_SUBPOLICY_KWARGS: dict[str, Any] = dict(
     gradient_steps=1, policy_kwargs=dict(net_arch=[64, 64]), target_update_interval=10_000, n_steps=8,
     replay_buffer_kwargs=dict(off_policy_lower_bound=True),
 )
+
+
+#: learning rounds between two returns of freed heap memory to the system (:func:`release_free_memory`)
+TRIM_EVERY = 50
+
+
+def _malloc_trim() -> Optional[Callable[[int], int]]:
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return libc.malloc_trim  # glibc only
+    except (OSError, AttributeError):
+        return None
+
+
+_TRIM = _malloc_trim()
+
+
+def release_free_memory() -> None:
+    """Hand the heap memory that was freed back to the system (glibc's ``malloc_trim``; elsewhere nothing). A learning
+    round allocates and frees tensors of a few MB whose sizes change with the sub-goals it updates; glibc serves them
+    from its heap once one was freed, and the heap, fragmented, kept growing: with 32 sub-goals and grouped rounds a
+    run held 1.3 GB after 10,000 steps where one with 2 held 0.6 GB. Called every :data:`TRIM_EVERY` rounds."""
+    if _TRIM is not None:
+        _TRIM(0)
 
 
 def default_subpolicy_kwargs() -> dict[str, Any]:
@@ -464,6 +490,8 @@ class StackedDQN:
                     self.rounds += 1
             if self.grouped_rounds and plan:
                 self.train_rounds(plan, first_round=first_round)
+            if self.rounds // TRIM_EVERY > first_round // TRIM_EVERY:
+                release_free_memory()
         if due_targets.any():
             index = th.as_tensor(np.flatnonzero(due_targets), device=self.device)
             self.target[index] = self.params[index]
