@@ -297,23 +297,6 @@ def test_a_round_updates_at_most_max_updates_subgoals_the_pursued_first_then_the
         small_learners(max_updates=0)
 
 
-def test_grouped_rounds_of_one_step_update_the_same_learners_and_the_waiting_ones_next(monkeypatch) -> None:
-    """With more sub-goals than max_updates, the two grouped rounds of a step update one set (the pursued first, then
-    those that waited longest), so each network reads both rounds' rows in one pass; the others take their turn next."""
-    learners = small_learners(train_shared=True, max_updates=3, grouped_rounds=True, n_envs=4)  # 2 rounds a step
-    for goal in range(7):
-        learners.add(goal)
-    plans = []
-    original = learners.train_rounds
-    monkeypatch.setattr(learners, "train_rounds",
-                        lambda plan, first_round: plans.append([g.tolist() for g in plan]) or original(plan, first_round))
-    for step in range(3):  # learning from the first step (4 transitions stored); sub-goal 5 is pursued by every env
-        learners.observe(np.zeros((4, 3), np.float32), np.zeros(4, np.int64), np.zeros((4, 3), np.float32), ["x"] * 4,
-                         np.zeros(4, bool), np.zeros(4, bool), np.zeros(4, bool), np.full(4, 5), np.zeros(4, np.float32))
-    assert plans == [[[0, 1, 5]] * 2, [[2, 3, 5]] * 2, [[4, 5, 6]] * 2]
-    assert learners.n_updates.tolist() == [2, 2, 2, 2, 2, 6, 2]
-
-
 def test_freed_memory_is_handed_back_every_trim_every_rounds(monkeypatch: pytest.MonkeyPatch) -> None:
     from sb3_hhp.hierarchy import learners as module
 

@@ -479,15 +479,10 @@ class StackedDQN:
             totals = replay.trees.total(np.arange(n_goals))
             rounds = int(due_updates.max()) * self.gradient_steps
             plan, first_round = [], self.rounds
-            last_due = None
             for r in range(rounds):
-                due = np.flatnonzero((due_updates * self.gradient_steps > r) & (totals > 0))
-                if len(due):
-                    # grouped, the rounds of one step update the same learners while the same ones are due (those
-                    # that wait take their turn at the next step): each network then reads both rounds' rows in one
-                    # pass, and a round's tensors keep their sizes
-                    same = self.grouped_rounds and plan and np.array_equal(due, last_due)
-                    goals, last_due = (plan[-1] if same else self.bounded(due, acting)), due
+                goals = np.flatnonzero((due_updates * self.gradient_steps > r) & (totals > 0))
+                if len(goals):
+                    goals = self.bounded(goals, acting)
                     if not self.grouped_rounds:
                         self.train_rounds([goals], first_round=self.rounds)
                     plan.append(goals)
