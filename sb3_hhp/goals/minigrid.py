@@ -103,7 +103,7 @@ def egocentric_size(width: int, height: int, outer_ring: bool = False) -> int:
     of a ``2 * max(W, H) - 1`` canvas the agent sees the whole grid wherever it stands; MiniGrid's grids are
     walled, so it never stands on their outermost cells and that canvas's outer ring is always empty: it is left
     out (a quarter of the inputs of DoorKey-8x8's 15x15 canvas, which networks' first layers would read for
-    nothing). ``outer_ring``: the canvas with it, as sb3_hhp 0.x before this change (models saved then read it)."""
+    nothing). ``outer_ring``: the canvas with that ring, which models saved before it was left out read."""
     return 2 * max(width, height) - 1 if outer_ring else max(1, 2 * max(width, height) - 3)
 
 
