@@ -69,10 +69,10 @@ def double_q_target(
     return rewards.reshape(-1, 1) + gamma * (1 - dones.reshape(-1, 1)) * next_q
 
 
-
 def _fixed_extractor(q_net: th.nn.Module) -> bool:
     """Whether an SB3 ``QNetwork``'s features extractor has no parameters (the same function in every copy)."""
     return next(iter(q_net.features_extractor.parameters()), None) is None
+
 
 class DoubleDQN(DQN):
     """
@@ -339,8 +339,9 @@ class DoubleDQN(DQN):
         if state_masks:
             valid_actions = self._valid_actions_tensor(next_obs.cpu().numpy())
         online, target = self.q_net, self.q_net_target
-        if self.double_q and _fixed_extractor(online) and type(online.features_extractor) is type(target.features_extractor):
-            # a features extractor without parameters (a fixed description): both networks read one extraction
+        if self.double_q and _fixed_extractor(online):
+            # a features extractor without parameters (a fixed description; the target is a copy of the online
+            # network, so the same one): both networks read one extraction
             features = online.extract_features(next_obs, online.features_extractor)
             next_q_target, next_q_online = target.q_net(features), online.q_net(features)
         else:

@@ -113,10 +113,7 @@ def egocentric_grid(base: MiniGridEnv, outer_ring: bool = False) -> np.ndarray:
     cells beyond the canvas would be cut off.)"""
     full = encode_grid(base.grid)  # (W, H, 3), [x, y]
     ax, ay = (int(v) for v in base.agent_pos)
-    if base.carrying is not None:
-        full[ax, ay] = base.carrying.encode()
-    else:
-        full[ax, ay] = (EMPTY, 0, 0)
+    full[ax, ay] = base.carrying.encode() if base.carrying is not None else _EMPTY_CELL
     size = egocentric_size(base.width, base.height, outer_ring)
     center = size // 2
     canvas = np.zeros((size, size, 3), dtype=np.uint8)

@@ -59,9 +59,6 @@ SUBGOAL_LEARNERS = {"heads": SharedHeadsDQN, "stacked": StackedDQN}
 
 #: the zip member of a saved model that holds the components beyond the meta-controller
 COMPONENTS_FILE = "hhp_components.pt"  # not .pth: SB3 loads every .pth member as weights only
-#: the MiniGrid observation a saved model's networks read: a canvas of side 2 * max(W, H) - 3 (goals.minigrid.egocentric_size)
-MINIGRID_CANVAS = "2*max(W,H)-3"
-OUTER_RING_CANVAS = "2*max(W,H)-1"  # the canvas of models saved before its always empty outer ring was left out
 REPLAY_FORMAT = "sb3_hhp.HhP.replay"  # the file of HhP.save_replay_buffer
 
 
@@ -297,6 +294,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
 
     #: models saved before ``success_bonus`` existed load with its default
     success_bonus = "predicted"
+    #: a MiniGrid model saved before the canvas's empty outer ring was left out reads the canvas with it (set by load)
+    minigrid_outer_ring = False
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
@@ -1010,8 +1009,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
             "consumed_query_ids": sorted(self.consumed_query_ids),
             "recent_choices": list(self.recent_choices),
             "oracle": self.oracle_spec if isinstance(self.oracle_spec, str) or self.oracle_spec is None else "none",
-            # the MiniGrid observation the networks read (absent from models saved before the outer ring was left out)
-            "minigrid_canvas": OUTER_RING_CANVAS if getattr(self, "minigrid_outer_ring", False) else MINIGRID_CANVAS,
+            # the MiniGrid canvas the networks read (absent from models saved before its outer ring was left out)
+            "minigrid_outer_ring": self.minigrid_outer_ring,
         }
 
     def load_components_state(self, state: dict[str, Any]) -> None:
@@ -1084,7 +1083,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         # a MiniGrid model saved before the canvas's outer ring was left out reads the canvas with it: raw envs given
         # to it are wrapped so (set_env)
         model.minigrid_outer_ring = (isinstance(getattr(model, "goal_space", None), MiniGridGoalSpace)
-                                     and components.get("minigrid_canvas", OUTER_RING_CANVAS) == OUTER_RING_CANVAS)
+                                     and components.get("minigrid_outer_ring", True))
         model.load_components_state(components)
         if env is not None:
             model.set_env(env, force_reset=force_reset)
@@ -1127,7 +1126,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """Attach (new) envs: an env, an env id or a VecEnv of any number of envs, whose sub-goals are the model's."""
-        outer_ring = getattr(self, "minigrid_outer_ring", False)
+        outer_ring = self.minigrid_outer_ring
         venv = _vec_env(env, outer_ring=outer_ring)
         assert venv is not None
         if venv.observation_space != self.primitive_observation_space:

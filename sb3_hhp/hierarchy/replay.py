@@ -303,10 +303,16 @@ class SharedReplay:
     def rewards(self, rows: np.ndarray, cols: np.ndarray, goals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Eq. 5 and 6 for sub-goals ``goals`` at stored transitions: the reward, ``terminal(s', g)`` (the env's
         own end, or ``done(s', g)``) and whether a time limit cut ``g`` there (the env's, or ``g``'s give-up)."""
-        at = rows * self.n_envs + cols  # one flat index, read from every array (faster than a pair of indices)
+        return self._rewards_at(rows * self.n_envs + cols, goals)
+
+    def _rewards_at(self, at: np.ndarray, goals: np.ndarray, acts: Optional[np.ndarray] = None) -> tuple:
+        """:meth:`rewards` at the flat indices ``at`` (``row * n_envs + col``: one index read from every array, faster
+        than a pair); ``acts``: whether ``goals`` acted there, when the caller has it."""
+        if acts is None:
+            acts = self.acting.ravel().take(at) == goals
         done = self.done(self.key_ids.ravel().take(at), goals)
         terminal = done | self.terminated.ravel().take(at)
-        cut = (self.truncated.ravel().take(at) | (self.gave_up.ravel().take(at) & (self.acting.ravel().take(at) == goals))) & ~terminal
+        cut = (self.truncated.ravel().take(at) | (self.gave_up.ravel().take(at) & acts)) & ~terminal
         reward = subpolicy_reward(pseudo_reward(done, terminal), self.intrinsic.ravel().take(at), self.alpha)  # eq. 5, 6
         return np.asarray(reward, dtype=np.float64), terminal, cut
 
@@ -322,10 +328,12 @@ class SharedReplay:
         """:meth:`_n_step` for the own returns and (``behaviour``) the returns along the stored behaviour, from one
         relabelling of the n transitions after each drawn one. :return: ``(own or None, behaviour or None)``."""
         steps = np.arange(self.n_steps)
-        seq = (rows[..., None] + steps) % self.capacity  # (T, B, n)
-        seq_cols = cols[..., None]
+        ahead = (rows[..., None] + np.arange(self.n_steps + 1)) % self.capacity  # (T, B, n + 1): n and the one after
+        at = ahead * self.n_envs + cols[..., None]
         seq_goals = goals[..., None]
-        reward, terminal, cut = self.rewards(seq, seq_cols, seq_goals)
+        acted = self.acting.ravel().take(at) == seq_goals  # whether g acted at each of them
+        seq = ahead[..., :-1]  # (T, B, n)
+        reward, terminal, cut = self._rewards_at(at[..., :-1], seq_goals, acted[..., :-1])
         discounted = reward * self.gamma ** steps
         newer = (self.pos - 1 - rows) % self.capacity  # transitions of this env stored after the drawn one
         stop = terminal | cut | (steps >= newer[..., None])
@@ -339,11 +347,8 @@ class SharedReplay:
             return returns, last_rows, (self.gamma ** (last + 1)).astype(np.float32), dones
 
         own_result = None
-        if own:
-            acting = self.acting.ravel()
-            acts = acting.take(seq * self.n_envs + seq_cols) == seq_goals
-            next_acts = acting.take((seq + 1) % self.capacity * self.n_envs + seq_cols) == seq_goals
-            own_result = closed(stop | ~acts | ~next_acts)
+        if own:  # g acted at each transition and at the one after it
+            own_result = closed(stop | ~acted[..., :-1] | ~acted[..., 1:])
         return own_result, (closed(stop.copy()) if behaviour else None)
 
     def update_priorities(self, goals: np.ndarray, leaves: np.ndarray, td_errors: np.ndarray) -> None:
