@@ -460,11 +460,29 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
         (dict(env=EMPTY, discovery="everything"), "discovery must be"),
         (dict(env=EMPTY, subgoal_learner_kwargs=dict(share_experience=False, train_shared=True)),
          "needs share_experience=True"),
+        (dict(env=EMPTY, subgoal_learner_kwargs=dict(view=4)), "view.*odd integer"),
+        (dict(env=EMPTY, subgoal_learner_kwargs=dict(view=9)), "view 9 is larger than the observation's 7 x 7"),
     ],
 )
 def test_bad_arguments_raise_clear_errors(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         HhP("MlpPolicy", **kwargs)
+
+
+def test_learners_with_a_view_read_the_cells_around_the_agent_and_save_and_load(tmp_path) -> None:
+    """subgoal_learner_kwargs view=3: the learners' networks read the 3 x 3 cells around the agent of the 7 x 7 canvas
+    (27 inputs), the meta-controller and the goal space the whole canvas; a saved model acts as the one it saved."""
+    model = make_model(subgoal_learner_kwargs=dict(view=3))
+    model.learn(600)
+    assert len(model.subgoals) > 0 and model.subpolicies.n_updates.sum() > 0
+    first = model.subpolicies.policy(0).q_net.q_net[0]
+    assert first.in_features == 3 * 3 * 3
+    assert model.subpolicies.replay.observations.shape[-3:] == model.primitive_observation_space.shape == (7, 7, 3)
+    model.save(tmp_path / "viewed")
+    loaded = HhP.load(tmp_path / "viewed")
+    assert loaded.subgoal_learner_kwargs["view"] == 3
+    sequence = _rollout_observations(model, seed=3)
+    assert _predictions(loaded, sequence) == _predictions(model, sequence)
 
 
 def test_env_forms(trained: HhP) -> None:

@@ -462,3 +462,54 @@ def test_masked_actions_are_never_taken_nor_in_the_targets_max(monkeypatch: pyte
     learners.train(np.array([0, 1]))
     for goal, params in expected.items():
         th.testing.assert_close(learners.params[goal], params, rtol=1e-5, atol=1e-6)
+
+
+GRID = spaces.Box(0, 10, (7, 7, 3), np.uint8)
+
+
+def grid_learners(space: spaces.Box, view=None, seed: int = 0) -> StackedDQN:
+    learners = StackedDQN(space, ACTIONS, equal_keys, n_envs=1, seed=seed, view=view, train_shared=True,
+                          subpolicy_kwargs=dict(learning_starts=4, batch_size=4, train_freq=1, n_steps=2,
+                                                learning_rate=0.01, policy_kwargs=dict(net_arch=[8])))
+    for goal in ("A", "B"):
+        learners.add(goal)
+    return learners
+
+
+def test_a_view_reads_only_the_central_cells_and_learns_as_a_learner_of_those_cells() -> None:
+    """With view=3 the learners read the 3 x 3 central cells of a 7 x 7 grid: cells outside change nothing, cells
+    inside do; and acting and learning on whole grids give what a learner of the cropped grids gives, step for step
+    (the same parameters after the same updates from the same seed)."""
+    rng = np.random.default_rng(0)
+    viewed, plain = grid_learners(GRID, view=3), grid_learners(spaces.Box(0, 10, (3, 3, 3), np.uint8))
+    assert viewed.params.shape == plain.params.shape  # a network of 27 inputs
+    grids = rng.integers(0, 11, (40, 7, 7, 3)).astype(np.uint8)
+    crop = grids[:, 2:5, 2:5]
+    outside = grids.copy()
+    outside[:, 0] = 10 - outside[:, 0]  # a row outside the view
+    inside = grids.copy()
+    inside[:, 3, 3] = 10 - inside[:, 3, 3]  # the centre
+    goals = np.zeros(len(grids), dtype=np.int64)
+    th.testing.assert_close(viewed.q_values(goals, outside), viewed.q_values(goals, grids))
+    assert not th.allclose(viewed.q_values(goals, inside), viewed.q_values(goals, grids))
+    keys = ["A" if t % 5 == 4 else ("B" if t % 7 == 6 else "x") for t in range(len(grids) - 1)]
+    for t, key in enumerate(keys):
+        for learners, obs in ((viewed, grids), (plain, crop)):
+            learners.observe(obs[t : t + 1], np.array([t % 3]), obs[t + 1 : t + 2], [key], np.array([False]),
+                             np.array([False]), np.array([False]), np.array([t % 2]), np.array([0.1], np.float32))
+    assert viewed.n_updates.sum() > 0 and viewed.n_updates.tolist() == plain.n_updates.tolist()
+    th.testing.assert_close(viewed.params, plain.params)
+    th.testing.assert_close(viewed.q_values(goals, grids), plain.q_values(goals, crop))
+    assert viewed.replay.observations.shape[-3:] == (7, 7, 3)  # the replay keeps whole grids (the goal space reads them)
+
+
+@pytest.mark.parametrize("space, view, match", [
+    (GRID, 4, "odd integer"),
+    (GRID, 0, "odd integer"),
+    (GRID, 9, "at most 7"),
+    (spaces.Box(0, 10, (8, 8, 3), np.uint8), 9, "at most 7"),
+    (OBS, 3, r"\(H, W, C\)"),
+])
+def test_a_view_that_cannot_be_read_is_refused(space: spaces.Box, view: int, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        StackedDQN(space, ACTIONS, equal_keys, view=view)

@@ -91,9 +91,10 @@ DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similari
 #: own steps over which a subpolicy's epsilon decays; whether every transition also trains the other sub-goals'
 #: learners, relabelled with their rewards; whether they take their gradient steps on every primitive step, not
 #: only while they act (None: True for discrete actions, False for DDPG sub-goals, a model each); most learners
-#: updated in one round (``subgoal_learner="stacked"``; None: all)
+#: updated in one round (``subgoal_learner="stacked"``; None: all); the learning rounds of one step of the envs in one
+#: call; the cells around the agent the learners read (None: the whole observation)
 SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(exploration_steps=5_000, share_experience=True, train_shared=None,
-                                                max_updates=8, grouped_rounds=False)
+                                                max_updates=8, grouped_rounds=False, view=None)
 #: each ``*_kwargs`` argument grouped over defaults: its defaults and the keys it accepts (None: the defaults' keys)
 GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
     "query_kwargs": (QUERY_DEFAULTS, None),
@@ -279,7 +280,9 @@ class HhP(BetweenEpisodes, DoubleDQN):
         sub-goals, a model each, K times the updates), ``max_updates`` (``subgoal_learner="stacked"``: most learners
         updated in one round, the sub-goals the envs pursue now first, then those that waited longest, so that the
         cost of a step stops growing once more sub-goals have been found; None: every sub-goal at each of its
-        updates; see the README's Design)
+        updates; see the README's Design), ``grouped_rounds`` (the learning rounds due at one step of the envs in
+        one call), ``view`` (discrete actions: the learners read only the central ``view`` x ``view`` cells of an
+        ``(H, W, C)`` observation, on MiniGrid's egocentric canvas the cells around the agent; None: all of it)
     :param subpolicy_kwargs: arguments of the sub-goal learners, in SB3 DQN's names (discrete actions: over
         :data:`~sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWARGS`; ``PAPER_SUBPOLICY_KWARGS`` is the paper's learner;
         ``buffer_size`` is the shared replay's, in primitive transitions) or of each sub-goal's SB3 DDPG (continuous)
@@ -536,6 +539,9 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 action_mask=self.goal_space.action_mask, **learner,
             )
         else:
+            if learner["view"] is not None:
+                raise ValueError("subgoal_learner_kwargs['view'] applies to the learners of discrete actions; this env's "
+                                 "sub-goal learners are DDPG models that read the whole observation: leave view out")
             self.subpolicies = PerGoalLearners(
                 SubpolicySet(obs_space, self.primitive_action_space, policy=self.subpolicy_policy,
                              subpolicy_kwargs=self.subpolicy_kwargs, exploration_steps=learner["exploration_steps"],

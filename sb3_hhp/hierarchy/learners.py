@@ -89,6 +89,22 @@ def default_subpolicy_kwargs() -> dict[str, Any]:
     )
 
 
+def _view_cells(space: spaces.Space, view: Optional[int]) -> tuple[Optional[int], Optional[tuple[slice, slice]]]:
+    """``view`` checked against the observation space, and the central cells it keeps (None, None without one)."""
+    if view is None:
+        return None, None
+    if isinstance(view, bool) or not isinstance(view, (int, np.integer)) or view < 1 or view % 2 == 0:
+        raise ValueError(f"view (subgoal_learner_kwargs) must be an odd integer >= 1 (cells around the centre), got {view!r}")
+    shape = getattr(space, "shape", None)
+    if not isinstance(space, spaces.Box) or shape is None or len(shape) != 3:
+        raise ValueError(f"view needs (H, W, C) observations, such as MiniGrid's egocentric canvas; got {space}: "
+                         "leave view out (None)")
+    if view > min(shape[0], shape[1]):
+        raise ValueError(f"view {view} is larger than the observation's {shape[0]} x {shape[1]} cells: use at most "
+                         f"{min(shape[0], shape[1]) - (1 - min(shape[0], shape[1]) % 2)}, or None for all")
+    return int(view), tuple(slice(side // 2 - view // 2, side // 2 + view // 2 + 1) for side in shape[:2])
+
+
 def _mlp_layers(q_net: th.nn.Module) -> Optional[list[tuple[str, Any]]]:
     """The layers of an SB3 ``QNetwork`` that is a flattened input through Linear layers and parameter-free
     activations, as ``("linear", parameter prefix)`` / ``("activation", module)``; None for any other network."""
@@ -133,6 +149,9 @@ class StackedDQN:
     :param action_mask: the primitive actions a learner may take in each state of a batch (the goal space's
         :meth:`~sb3_hhp.goals.GoalSpace.action_mask`), applied to acting, exploring and the max of the targets;
         None: every action
+    :param view: the learners read only the central ``view`` x ``view`` cells of an ``(H, W, C)`` observation (on
+        MiniGrid's egocentric canvas: the cells around the agent), odd; the replay keeps whole observations (the goal
+        space reads them). None: the whole observation
     """
 
     #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
@@ -155,6 +174,7 @@ class StackedDQN:
         max_updates: Optional[int] = None,
         grouped_rounds: bool = False,
         action_mask: Optional[Callable[[np.ndarray], Optional[np.ndarray]]] = None,
+        view: Optional[int] = None,
     ) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
@@ -177,6 +197,7 @@ class StackedDQN:
             if isinstance(kw[name], (tuple, list)) or int(kw[name]) < 1:
                 raise ValueError(f"subpolicy_kwargs['{name}'] must be an integer >= 1 (counted in steps), got {kw[name]!r}")
         self.observation_space, self.action_space = observation_space, action_space
+        self.view, self._cells = _view_cells(observation_space, view)
         self.kwargs = kw
         self.lr, self.gamma = float(kw["learning_rate"]), float(kw["gamma"])
         self.batch_size, self.learning_starts = int(kw["batch_size"]), int(kw["learning_starts"])
@@ -203,11 +224,14 @@ class StackedDQN:
         )
         self.replay = self._make_replay(n_envs)
         # SB3's CNN reads channel-first images: the env's channel-last frames are turned when they reach a network
-        self._transpose = is_image_space(observation_space) and not is_image_space_channels_first(observation_space)
         net_space = observation_space
+        if self._cells is not None:  # what the networks read: the central cells
+            net_space = spaces.Box(observation_space.low[self._cells], observation_space.high[self._cells],
+                                   dtype=observation_space.dtype)
+        self._transpose = is_image_space(net_space) and not is_image_space_channels_first(net_space)
         if self._transpose:
-            h, w, c = observation_space.shape
-            net_space = spaces.Box(0, 255, (c, h, w), observation_space.dtype)
+            h, w, c = net_space.shape
+            net_space = spaces.Box(0, 255, (c, h, w), net_space.dtype)
         policy_class = {"MlpPolicy": MlpPolicy, "CnnPolicy": CnnPolicy}.get(policy) if isinstance(policy, str) else policy
         if policy_class is None:
             raise ValueError(f"Sub-goal learners use 'MlpPolicy' or 'CnnPolicy', got {policy!r}")
@@ -414,7 +438,13 @@ class StackedDQN:
         return float(np.mean(self.recent[goal])) if self.recent[goal] else None
 
     # ------------------------------------------------------------------ acting
-    def _tensor(self, obs: np.ndarray) -> th.Tensor:
+    def _crop(self, obs: np.ndarray) -> np.ndarray:
+        """What the networks read of observations ``(..., H, W, C)``: the central cells with a ``view``, else all."""
+        return obs if self._cells is None else obs[(..., *self._cells, slice(None))]
+
+    def _tensor(self, obs: np.ndarray, cropped: bool = False) -> th.Tensor:
+        """Observations as the networks' input tensor (``cropped``: already :meth:`_crop`-ped)."""
+        obs = obs if cropped else self._crop(obs)
         obs = np.moveaxis(obs, -1, -3) if self._transpose else obs
         return th.as_tensor(np.ascontiguousarray(obs), device=self.device)
 
@@ -545,8 +575,8 @@ class StackedDQN:
             return t.reshape(learners, reps, -1, *t.shape[2:]).transpose(0, 1).reshape(reps * learners, -1, *t.shape[2:])
 
         if self._relu_mlp:  # one forward pass of the online networks over s and the closing states, backward by hand
-            x = np.concatenate([per_learner(batch.observations), per_learner(next_obs)], axis=1)
-            outputs = self._mlp_forward(params, self._mlp_input(self._tensor(x)))
+            x = np.concatenate([per_learner(self._crop(batch.observations)), per_learner(self._crop(next_obs))], axis=1)
+            outputs = self._mlp_forward(params, self._mlp_input(self._tensor(x, cropped=True)))
             q_s = per_round(outputs[-1][:, : reps * n])
             q, next_q_online = q_s.gather(-1, actions)[..., 0], per_round(outputs[-1][:, reps * n :])
         else:
