@@ -8,7 +8,15 @@ discount and target interval (``sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWA
 ``--kwargs``), its epsilon falling to 0.05 over ``--exploration-steps`` steps; it has none of the shared replay's
 prioritization, Double DQN or lower bound, and acts every step where a learner acts for part of them. So it tells
 which settings let the skill be learned at all within a number of steps, cheaply (a few minutes a run), not how a
-learner fares inside HhP.
+learner fares inside HhP. With ``--learner stacked`` the learner is HhP's own (``StackedDQN``, one sub-goal: its
+prioritized shared replay, Double DQN, n-step returns and lower bound, ``--view``), acting on every step, so that
+each of its parts can be switched off in ``--kwargs`` (``prioritized_replay_alpha: 0`` draws uniformly,
+``double_q: false``, ``replay_buffer_kwargs: {"off_policy_lower_bound": false}``). With ``--learner hhp`` it is HhP
+itself, the env's YAML entry with ``--hhp-kwargs`` over it, ``--n-envs`` envs (8), the one sub-goal "empty handed, facing the
+object" handed in (``discovery="none"``, no preferences): the same learner inside the option loop, where a try that
+reaches the object is followed by the next try from there, not from a fresh layout; ``--train-max-steps`` shortens
+the training envs' episodes (MiniGrid's ``max_steps``). Its evaluation: HhP's ``predict`` (stochastic) from fresh
+layouts, reached within ``--max-steps``.
 
 At every quarter of ``--steps`` the greedy policy and the policy with epsilon 0.05 are evaluated on fresh layouts
 (seeds 50,000+): the fraction of tries that reach the object.
@@ -33,7 +41,7 @@ from stable_baselines3 import DQN
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
-from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS  # noqa: E402
+from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS, StackedDQN  # noqa: E402
 
 OBJECTS = {"key": Key, "door": Door, "ball": Ball, "box": Box}
 
@@ -59,8 +67,25 @@ class FaceObject(gym.Wrapper):
         return obs, float(reached), bool(reached or terminated), bool(truncated or self.steps >= self.max_steps), info
 
 
-def make_env(env_id: str, kind: str, max_steps: int) -> gym.Env:
-    return FaceObject(wrap_env(gym.make(env_id)), OBJECTS[kind], max_steps)
+class CenterCrop(gym.ObservationWrapper):
+    """The ``size`` x ``size`` cells of the egocentric canvas around the agent (its centre)."""
+
+    def __init__(self, env: gym.Env, size: int) -> None:
+        super().__init__(env)
+        side = env.observation_space.shape[0]
+        if not 1 <= size <= side or size % 2 == 0:
+            raise ValueError(f"--crop must be odd and at most the canvas's side {side}, got {size}")
+        self.cells = slice(side // 2 - size // 2, side // 2 + size // 2 + 1)
+        space = env.observation_space
+        self.observation_space = gym.spaces.Box(0, int(space.high.max()), (size, size, space.shape[2]), space.dtype)
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(observation[self.cells, self.cells])
+
+
+def make_env(env_id: str, kind: str, max_steps: int, crop: int = 0) -> gym.Env:
+    env = wrap_env(gym.make(env_id))
+    return FaceObject(CenterCrop(env, crop) if crop else env, OBJECTS[kind], max_steps)
 
 
 def success_rate(model: DQN, env: gym.Env, episodes: int, epsilon: float, seed: int = 50_000) -> float:
@@ -73,6 +98,92 @@ def success_rate(model: DQN, env: gym.Env, episodes: int, epsilon: float, seed: 
             explore = rng.random() < epsilon
             action = int(rng.integers(env.action_space.n)) if explore else int(model.predict(obs, deterministic=True)[0])
             obs, _, terminated, truncated, info = env.step(action)
+            done = terminated or truncated
+        reached += int(info["is_success"])
+    return reached / episodes
+
+
+class StackedAgent:
+    """HhP's sub-goal learners (``StackedDQN``) with one sub-goal, "reached", pursued on every step: ``learn`` and
+    ``predict`` as the SB3 DQN of the default mode has them."""
+
+    def __init__(self, env: FaceObject, settings: dict[str, Any], exploration_steps: int, view: int, seed: int,
+                 fresh_after_success: bool = True) -> None:
+        sb3_only = ("exploration_fraction", "exploration_final_eps")
+        kwargs = {key: value for key, value in settings.items() if key not in sb3_only}
+        self.env, self.num_timesteps, self.fresh_after_success = env, 0, fresh_after_success
+        self.learners = StackedDQN(env.observation_space, env.action_space, lambda key, goal: key == goal,
+                                   subpolicy_kwargs=kwargs, exploration_steps=exploration_steps, train_shared=True,
+                                   seed=seed, view=view or None, alpha=0.0)
+        self.learners.add("reached")
+        self.obs, _ = env.reset(seed=seed)
+
+    def learn(self, steps: int, reset_num_timesteps: bool = False) -> None:
+        goal = np.zeros(1, dtype=np.int64)
+        for _ in range(steps):
+            action = self.learners.act(goal, self.obs[None])
+            next_obs, _, terminated, truncated, info = self.env.step(int(action[0]))
+            reached = info["is_success"]
+            self.learners.observe(self.obs[None], action, next_obs[None], ["reached" if reached else "not"],
+                                  np.array([terminated and not reached]), np.array([False]),
+                                  np.array([truncated and not terminated]), goal, np.zeros(1, np.float32))
+            self.num_timesteps += 1
+            if terminated and reached and not self.fresh_after_success:  # the next try from where this one ended
+                self.env.steps = 0
+            elif terminated or truncated:
+                next_obs, _ = self.env.reset()
+            self.obs = next_obs
+
+    def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        return self.learners.act(np.zeros(1, dtype=np.int64), obs[None], deterministic=deterministic)[0], None
+
+
+def handed_in_subgoal(env: gym.Env, kind: type, seed: int = 0) -> np.ndarray:
+    """An observation of the env (wrapped) in which the agent, empty handed, faces an object of class ``kind``
+    (random moves until it does)."""
+    rng = np.random.default_rng(seed)
+    obs, _ = env.reset(seed=seed)
+    for _ in range(1_000_000):
+        base = env.unwrapped
+        if base.carrying is None and isinstance(base.grid.get(*base.front_pos), kind):
+            return obs
+        obs, _, terminated, truncated, _ = env.step(int(rng.integers(3)))  # turns and moves only
+        if terminated or truncated:
+            obs, _ = env.reset()
+    raise RuntimeError(f"random moves never faced a {kind.__name__}")
+
+
+def hhp_learner(args: argparse.Namespace, settings: dict[str, Any]) -> Any:
+    """HhP with the env's YAML entry, ``--hhp-kwargs`` over it, and one sub-goal handed in (see the module's doc)."""
+    import yaml
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from sb3_hhp import HhP
+    from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry
+
+    table = yaml.safe_load(default_config_path().read_text())
+    kwargs = {key: value for key, value in table[select_entry(table, args.env)].items() if key not in ZOO_KEYS}
+    kwargs.pop("oracle", None)
+    kwargs.update(json.loads(args.hhp_kwargs))
+    sub = {key: value for key, value in settings.items() if key not in ("exploration_fraction", "exploration_final_eps")}
+    kwargs["subpolicy_kwargs"] = {**kwargs.get("subpolicy_kwargs", {}), **sub}
+    goal = handed_in_subgoal(wrap_env(gym.make(args.env)), OBJECTS[args.object], args.seed)
+    env_kwargs = {"max_steps": args.train_max_steps} if args.train_max_steps else None
+    envs = make_vec_env(args.env, n_envs=args.n_envs, seed=args.seed, wrapper_class=wrap_env, env_kwargs=env_kwargs)
+    kwargs.update(discovery="none", subgoals=[goal], use_preferences=False, max_subgoal_steps=args.max_steps)
+    return HhP("MlpPolicy", envs, seed=args.seed, **kwargs)
+
+
+def hhp_success_rate(model: Any, env: gym.Env, episodes: int, seed: int = 50_000) -> float:
+    """The fraction of fresh layouts from which HhP's ``predict`` (stochastic) faces the object within the try's
+    ``max_steps`` (``env`` a :class:`FaceObject`)."""
+    reached = 0
+    for episode in range(episodes):
+        obs, _ = env.reset(seed=seed + episode)
+        state, done, info = None, False, {}
+        while not done:
+            action, state = model.predict(obs, state=state, episode_start=np.array([state is None]), deterministic=False)
+            obs, _, terminated, truncated, info = env.step(int(np.asarray(action).reshape(-1)[0]))
             done = terminated or truncated
         reached += int(info["is_success"])
     return reached / episodes
@@ -96,6 +207,17 @@ def main() -> None:
     parser.add_argument("--exploration-steps", type=int, default=20_000)
     parser.add_argument("--gamma", type=float, default=0.9)
     parser.add_argument("--kwargs", default="{}", help="SB3 DQN arguments over the learners' defaults (JSON)")
+    parser.add_argument("--crop", type=int, default=0, help="read only this many cells around the agent (odd; 0: all)")
+    parser.add_argument("--learner", default="dqn", choices=["dqn", "stacked", "hhp"],
+                        help="SB3's DQN, HhP's StackedDQN (its --view instead of --crop), or HhP with the one sub-goal")
+    parser.add_argument("--hhp-kwargs", default="{}", help="--learner hhp: HhP arguments over the YAML entry's (JSON)")
+    parser.add_argument("--n-envs", type=int, default=8, help="--learner hhp: envs stepped together")
+    parser.add_argument("--stay-after-success", action="store_true",
+                        help="--learner stacked: a try that reached the object is followed by the next from there (as "
+                             "in HhP's option loop), not by a fresh layout")
+    parser.add_argument("--train-max-steps", type=int, default=0,
+                        help="--learner hhp: the training envs' episode length (MiniGrid's max_steps; 0: the env's)")
+    parser.add_argument("--view", type=int, default=0, help="StackedDQN's view (odd; 0: the whole canvas)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--eval-episodes", type=int, default=50)
     parser.add_argument("--out", default=None, help="write the settings and the curve as JSON here")
@@ -103,16 +225,26 @@ def main() -> None:
     register_minigrid_tasks()
     th.set_num_threads(1)
     settings = learner_settings(args.steps, args.exploration_steps, args.gamma, json.loads(args.kwargs))
-    env, eval_env = (make_env(args.env, args.object, args.max_steps) for _ in range(2))
-    model = DQN("MlpPolicy", env, seed=args.seed, **settings)
+    env, eval_env = (make_env(args.env, args.object, args.max_steps, args.crop) for _ in range(2))
+    if args.learner == "stacked":
+        model = StackedAgent(env, settings, args.exploration_steps, args.view, args.seed, not args.stay_after_success)
+    elif args.learner == "hhp":
+        model = hhp_learner(args, settings)
+    else:
+        model = DQN("MlpPolicy", env, seed=args.seed, **settings)
     begin, curve = time.perf_counter(), []
     for quarter in range(4):
-        model.learn(args.steps // 4, reset_num_timesteps=False)
-        curve.append(dict(steps=model.num_timesteps, greedy=success_rate(model, eval_env, args.eval_episodes, 0.0),
-                          epsilon_0_05=success_rate(model, eval_env, args.eval_episodes, 0.05),
-                          seconds=round(time.perf_counter() - begin, 1)))
+        model.learn((quarter + 1) * args.steps // 4 - model.num_timesteps, reset_num_timesteps=False)
+        if args.learner == "hhp":
+            point = dict(stochastic=hhp_success_rate(model, eval_env, args.eval_episodes))
+        else:
+            point = dict(greedy=success_rate(model, eval_env, args.eval_episodes, 0.0),
+                         epsilon_0_05=success_rate(model, eval_env, args.eval_episodes, 0.05))
+        curve.append(dict(steps=model.num_timesteps, **point, seconds=round(time.perf_counter() - begin, 1)))
         print(json.dumps(curve[-1]), flush=True)
-    result = dict(env=args.env, object=args.object, seed=args.seed, max_steps=args.max_steps,
+    result = dict(env=args.env, object=args.object, seed=args.seed, max_steps=args.max_steps, crop=args.crop,
+                  learner=args.learner, view=args.view, hhp_kwargs=json.loads(args.hhp_kwargs),
+                  train_max_steps=args.train_max_steps, n_envs=args.n_envs, stay_after_success=args.stay_after_success,
                   settings={key: (value if isinstance(value, (int, float, str)) else str(value)) for key, value in settings.items()},
                   curve=curve, command="benchmarks/diagnostics/learner_proxy.py " + " ".join(sys.argv[1:]))
     if args.out:
