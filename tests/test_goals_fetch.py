@@ -176,3 +176,8 @@ def test_episode_success_is_the_envs_own_where_it_reports_one(info, terminated, 
 def test_cnn_policy_on_flat_observations_names_the_policy_to_use() -> None:
     with pytest.raises(ValueError, match=r"use HhP\('MlpPolicy', env\)"):
         HhP("CnnPolicy", gym.make(REACH))
+
+
+def test_a_learner_view_on_ddpg_subgoals_names_the_fix() -> None:
+    with pytest.raises(ValueError, match="view.*DDPG.*leave view out"):
+        HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(view=3))

@@ -539,7 +539,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 action_mask=self.goal_space.action_mask, **learner,
             )
         else:
-            if learner["view"] is not None:
+            if learner.get("view") is not None:  # (models saved before the option have no key)
                 raise ValueError("subgoal_learner_kwargs['view'] applies to the learners of discrete actions; this env's "
                                  "sub-goal learners are DDPG models that read the whole observation: leave view out")
             self.subpolicies = PerGoalLearners(
