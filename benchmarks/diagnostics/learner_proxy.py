@@ -40,10 +40,19 @@ from minigrid.core.world_object import Ball, Box, Door, Key
 from stable_baselines3 import DQN
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
+from benchmarks.speed import entry_kwargs  # noqa: E402
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
-from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS, StackedDQN  # noqa: E402
+from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS, StackedDQN, view_cells  # noqa: E402
 
 OBJECTS = {"key": Key, "door": Door, "ball": Ball, "box": Box}
+#: the exploration schedule of SB3's DQN, which HhP's learners set with their own exploration_steps
+SB3_SCHEDULE = ("exploration_fraction", "exploration_final_eps")
+
+
+def faces(env: gym.Env, kind: type) -> bool:
+    """Whether the agent of a MiniGrid env, carrying nothing, faces an object of class ``kind``."""
+    base = env.unwrapped
+    return base.carrying is None and isinstance(base.grid.get(*base.front_pos), kind)
 
 
 class FaceObject(gym.Wrapper):
@@ -61,9 +70,8 @@ class FaceObject(gym.Wrapper):
     def step(self, action: int) -> Any:
         obs, _, terminated, truncated, info = self.env.step(action)
         self.steps += 1
-        base = self.env.unwrapped
-        reached = base.carrying is None and isinstance(base.grid.get(*base.front_pos), self.kind)
-        info["is_success"] = bool(reached)
+        reached = faces(self.env, self.kind)
+        info["is_success"] = reached
         return obs, float(reached), bool(reached or terminated), bool(truncated or self.steps >= self.max_steps), info
 
 
@@ -72,15 +80,12 @@ class CenterCrop(gym.ObservationWrapper):
 
     def __init__(self, env: gym.Env, size: int) -> None:
         super().__init__(env)
-        side = env.observation_space.shape[0]
-        if not 1 <= size <= side or size % 2 == 0:
-            raise ValueError(f"--crop must be odd and at most the canvas's side {side}, got {size}")
-        self.cells = slice(side // 2 - size // 2, side // 2 + size // 2 + 1)
         space = env.observation_space
+        self.cells = view_cells(space, size)  # the cells a sub-goal learner with view=size reads
         self.observation_space = gym.spaces.Box(0, int(space.high.max()), (size, size, space.shape[2]), space.dtype)
 
     def observation(self, observation: np.ndarray) -> np.ndarray:
-        return np.ascontiguousarray(observation[self.cells, self.cells])
+        return np.ascontiguousarray(observation[self.cells])
 
 
 def make_env(env_id: str, kind: str, max_steps: int, crop: int = 0) -> gym.Env:
@@ -88,19 +93,42 @@ def make_env(env_id: str, kind: str, max_steps: int, crop: int = 0) -> gym.Env:
     return FaceObject(CenterCrop(env, crop) if crop else env, OBJECTS[kind], max_steps)
 
 
-def success_rate(model: DQN, env: gym.Env, episodes: int, epsilon: float, seed: int = 50_000) -> float:
-    """The fraction of ``episodes`` fresh tries (seeds ``seed``, ``seed + 1``, ...) that reach the object."""
-    rng, reached = np.random.default_rng(seed), 0
+def success_rate(env: gym.Env, episodes: int, act: Any, seed: int = 50_000) -> float:
+    """The fraction of ``episodes`` fresh tries (seeds ``seed``, ``seed + 1``, ...) that reach the object, acting
+    with ``act(obs, first)`` (``first``: the try's first step)."""
+    reached = 0
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
-        done, info = False, {}
+        done, info, first = False, {}, True
         while not done:
-            explore = rng.random() < epsilon
-            action = int(rng.integers(env.action_space.n)) if explore else int(model.predict(obs, deterministic=True)[0])
-            obs, _, terminated, truncated, info = env.step(action)
-            done = terminated or truncated
+            obs, _, terminated, truncated, info = env.step(act(obs, first))
+            done, first = terminated or truncated, False
         reached += int(info["is_success"])
     return reached / episodes
+
+
+def epsilon_greedy(model: Any, n_actions: int, epsilon: float, seed: int = 50_000) -> Any:
+    """``act`` for :func:`success_rate`: ``model``'s greedy action, a random one with probability ``epsilon``."""
+    rng = np.random.default_rng(seed)
+
+    def act(obs: np.ndarray, first: bool) -> int:
+        explore = rng.random() < epsilon
+        return int(rng.integers(n_actions)) if explore else int(model.predict(obs, deterministic=True)[0])
+
+    return act
+
+
+def hhp_stochastic(model: Any) -> Any:
+    """``act`` for :func:`success_rate`: HhP's ``predict`` (stochastic), its option state kept within a try."""
+    state = None
+
+    def act(obs: np.ndarray, first: bool) -> int:
+        nonlocal state
+        action, state = model.predict(obs, state=None if first else state, episode_start=np.array([first]),
+                                      deterministic=False)
+        return int(np.asarray(action).reshape(-1)[0])
+
+    return act
 
 
 class StackedAgent:
@@ -109,8 +137,7 @@ class StackedAgent:
 
     def __init__(self, env: FaceObject, settings: dict[str, Any], exploration_steps: int, view: int, seed: int,
                  fresh_after_success: bool = True) -> None:
-        sb3_only = ("exploration_fraction", "exploration_final_eps")
-        kwargs = {key: value for key, value in settings.items() if key not in sb3_only}
+        kwargs = {key: value for key, value in settings.items() if key not in SB3_SCHEDULE}
         self.env, self.num_timesteps, self.fresh_after_success = env, 0, fresh_after_success
         self.learners = StackedDQN(env.observation_space, env.action_space, lambda key, goal: key == goal,
                                    subpolicy_kwargs=kwargs, exploration_steps=exploration_steps, train_shared=True,
@@ -144,8 +171,7 @@ def handed_in_subgoal(env: gym.Env, kind: type, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     obs, _ = env.reset(seed=seed)
     for _ in range(1_000_000):
-        base = env.unwrapped
-        if base.carrying is None and isinstance(base.grid.get(*base.front_pos), kind):
+        if faces(env, kind):
             return obs
         obs, _, terminated, truncated, _ = env.step(int(rng.integers(3)))  # turns and moves only
         if terminated or truncated:
@@ -155,38 +181,19 @@ def handed_in_subgoal(env: gym.Env, kind: type, seed: int = 0) -> np.ndarray:
 
 def hhp_learner(args: argparse.Namespace, settings: dict[str, Any]) -> Any:
     """HhP with the env's YAML entry, ``--hhp-kwargs`` over it, and one sub-goal handed in (see the module's doc)."""
-    import yaml
     from stable_baselines3.common.env_util import make_vec_env
 
     from sb3_hhp import HhP
-    from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry
 
-    table = yaml.safe_load(default_config_path().read_text())
-    kwargs = {key: value for key, value in table[select_entry(table, args.env)].items() if key not in ZOO_KEYS}
-    kwargs.pop("oracle", None)
-    kwargs.update(json.loads(args.hhp_kwargs))
-    sub = {key: value for key, value in settings.items() if key not in ("exploration_fraction", "exploration_final_eps")}
+    _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
+    kwargs.pop("oracle", None)  # no preferences: nobody is asked
+    sub = {key: value for key, value in settings.items() if key not in SB3_SCHEDULE}
     kwargs["subpolicy_kwargs"] = {**kwargs.get("subpolicy_kwargs", {}), **sub}
     goal = handed_in_subgoal(wrap_env(gym.make(args.env)), OBJECTS[args.object], args.seed)
     env_kwargs = {"max_steps": args.train_max_steps} if args.train_max_steps else None
     envs = make_vec_env(args.env, n_envs=args.n_envs, seed=args.seed, wrapper_class=wrap_env, env_kwargs=env_kwargs)
     kwargs.update(discovery="none", subgoals=[goal], use_preferences=False, max_subgoal_steps=args.max_steps)
     return HhP("MlpPolicy", envs, seed=args.seed, **kwargs)
-
-
-def hhp_success_rate(model: Any, env: gym.Env, episodes: int, seed: int = 50_000) -> float:
-    """The fraction of fresh layouts from which HhP's ``predict`` (stochastic) faces the object within the try's
-    ``max_steps`` (``env`` a :class:`FaceObject`)."""
-    reached = 0
-    for episode in range(episodes):
-        obs, _ = env.reset(seed=seed + episode)
-        state, done, info = None, False, {}
-        while not done:
-            action, state = model.predict(obs, state=state, episode_start=np.array([state is None]), deterministic=False)
-            obs, _, terminated, truncated, info = env.step(int(np.asarray(action).reshape(-1)[0]))
-            done = terminated or truncated
-        reached += int(info["is_success"])
-    return reached / episodes
 
 
 def learner_settings(steps: int, exploration_steps: int, gamma: float, overrides: dict[str, Any]) -> dict[str, Any]:
@@ -235,11 +242,12 @@ def main() -> None:
     begin, curve = time.perf_counter(), []
     for quarter in range(4):
         model.learn((quarter + 1) * args.steps // 4 - model.num_timesteps, reset_num_timesteps=False)
+        episodes, n_actions = args.eval_episodes, int(eval_env.action_space.n)
         if args.learner == "hhp":
-            point = dict(stochastic=hhp_success_rate(model, eval_env, args.eval_episodes))
+            point = dict(stochastic=success_rate(eval_env, episodes, hhp_stochastic(model)))
         else:
-            point = dict(greedy=success_rate(model, eval_env, args.eval_episodes, 0.0),
-                         epsilon_0_05=success_rate(model, eval_env, args.eval_episodes, 0.05))
+            point = dict(greedy=success_rate(eval_env, episodes, epsilon_greedy(model, n_actions, 0.0)),
+                         epsilon_0_05=success_rate(eval_env, episodes, epsilon_greedy(model, n_actions, 0.05)))
         curve.append(dict(steps=model.num_timesteps, **point, seconds=round(time.perf_counter() - begin, 1)))
         print(json.dumps(curve[-1]), flush=True)
     result = dict(env=args.env, object=args.object, seed=args.seed, max_steps=args.max_steps, crop=args.crop,

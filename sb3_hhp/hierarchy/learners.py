@@ -89,20 +89,22 @@ def default_subpolicy_kwargs() -> dict[str, Any]:
     )
 
 
-def _view_cells(space: spaces.Space, view: Optional[int]) -> tuple[Optional[int], Optional[tuple[slice, slice]]]:
-    """``view`` checked against the observation space, and the central cells it keeps (None, None without one)."""
+def view_cells(space: spaces.Space, view: Optional[int]) -> Optional[tuple[slice, slice]]:
+    """The central ``view`` x ``view`` cells of ``(H, W, C)`` observations of ``space`` (rows, columns), after checking
+    that ``view`` can be read there; None without a view."""
     if view is None:
-        return None, None
+        return None
     if isinstance(view, bool) or not isinstance(view, (int, np.integer)) or view < 1 or view % 2 == 0:
         raise ValueError(f"view (subgoal_learner_kwargs) must be an odd integer >= 1 (cells around the centre), got {view!r}")
     shape = getattr(space, "shape", None)
     if not isinstance(space, spaces.Box) or shape is None or len(shape) != 3:
         raise ValueError(f"view needs (H, W, C) observations, such as MiniGrid's egocentric canvas; got {space}: "
                          "leave view out (None)")
-    if view > min(shape[0], shape[1]):
+    side = min(shape[0], shape[1])
+    if view > side:
         raise ValueError(f"view {view} is larger than the observation's {shape[0]} x {shape[1]} cells: use at most "
-                         f"{min(shape[0], shape[1]) - (1 - min(shape[0], shape[1]) % 2)}, or None for all")
-    return int(view), tuple(slice(side // 2 - view // 2, side // 2 + view // 2 + 1) for side in shape[:2])
+                         f"{side if side % 2 else side - 1}, or None for all")
+    return tuple(slice(length // 2 - view // 2, length // 2 + view // 2 + 1) for length in shape[:2])
 
 
 def _mlp_layers(q_net: th.nn.Module) -> Optional[list[tuple[str, Any]]]:
@@ -197,7 +199,7 @@ class StackedDQN:
             if isinstance(kw[name], (tuple, list)) or int(kw[name]) < 1:
                 raise ValueError(f"subpolicy_kwargs['{name}'] must be an integer >= 1 (counted in steps), got {kw[name]!r}")
         self.observation_space, self.action_space = observation_space, action_space
-        self.view, self._cells = _view_cells(observation_space, view)
+        self.view, self._cells = view, view_cells(observation_space, view)
         self.kwargs = kw
         self.lr, self.gamma = float(kw["learning_rate"]), float(kw["gamma"])
         self.batch_size, self.learning_starts = int(kw["batch_size"]), int(kw["learning_starts"])
