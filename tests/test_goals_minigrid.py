@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from minigrid.core.actions import Actions
 from minigrid.core.constants import COLOR_TO_IDX, COLORS, DIR_TO_VEC, OBJECT_TO_IDX, STATE_TO_IDX
-from minigrid.core.world_object import Ball, Key
+from minigrid.core.world_object import Ball, Key, Wall
 
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
 from sb3_hhp.goals.minigrid import GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, NO_GOAL_SQUARE, OPEN_DOORS
@@ -123,6 +123,30 @@ def test_the_canvas_leaves_out_only_its_always_empty_outer_ring(env_id: str) -> 
         if terminated or truncated:
             obs_ring, _ = ring.reset(seed=2)
             obs, _ = cropped.reset(seed=2)
+
+
+@pytest.mark.parametrize("env_id, walled", [("MiniGrid-DoorKey-8x8-v0", True), ("MiniGrid-KeyCorridorS3R1-v0", True),
+                                            ("MiniGrid-FourRooms-v0", True), ("MiniGrid-ObstructedMaze-1Q-v1", True),
+                                            ("MiniGrid-MultiRoom-N6-v0", False)])
+def test_the_canvas_ring_only_shows_the_border_wall_so_the_inner_view_loses_nothing(env_id: str, walled: bool) -> None:
+    """On a grid with a border wall, the outermost ring of the canvas holds only that wall or nothing, and the whole
+    canvas is a function of the cells inside that ring (no two states seen in random play share those cells and
+    differ in the ring): the sub-goal learners' ``view="inner"`` reads everything the canvas tells. MultiRoom's grid
+    has no border wall: there the ring shows only the grid's edge cells, walls or the void between rooms."""
+    env = MiniGridEgocentricObs(gym.make(env_id))
+    obs, _ = env.reset(seed=3)
+    rng = np.random.default_rng(3)
+    rings: dict[bytes, bytes] = {}
+    allowed = {(0, 0, 0), tuple(Wall().encode())} | (set() if walled else {(OBJECT_TO_IDX["empty"], 0, 0)})
+    for step in range(600):
+        ring = np.concatenate([obs[0], obs[-1], obs[:, 0], obs[:, -1]])
+        assert set(map(tuple, ring.tolist())) <= allowed
+        if walled:
+            assert rings.setdefault(obs[1:-1, 1:-1].tobytes(), ring.tobytes()) == ring.tobytes()
+        obs, _, terminated, truncated, _ = env.step(int(rng.integers(env.action_space.n)))
+        if terminated or truncated:
+            obs, _ = env.reset(seed=step)
+    assert len(rings) > 50 or not walled
 
 
 @pytest.mark.parametrize("env_id", ["MiniGrid-DoorKey-8x8-v0", "MiniGrid-KeyCorridorS3R3-v0", "MiniGrid-ObstructedMaze-1Q-v1"])

@@ -503,7 +503,25 @@ def test_a_view_reads_only_the_central_cells_and_learns_as_a_learner_of_those_ce
     assert viewed.replay.observations.shape[-3:] == (7, 7, 3)  # the replay keeps whole grids (the goal space reads them)
 
 
+def test_the_inner_view_reads_every_cell_but_the_outermost_ring() -> None:
+    """view="inner" on a 7 x 7 grid is the 5 x 5 grid inside its outermost ring: the same cells as view=5, and a change
+    of the ring changes nothing; on a 7 x 9 grid it reads 5 x 7 cells."""
+    rng = np.random.default_rng(1)
+    inner, five = grid_learners(GRID, view="inner"), grid_learners(GRID, view=5)
+    assert inner.params.shape[1] == five.params.shape[1]
+    grids = rng.integers(0, 11, (10, 7, 7, 3)).astype(np.uint8)
+    goals = np.zeros(len(grids), dtype=np.int64)
+    ring = grids.copy()
+    ring[:, 0], ring[:, -1], ring[:, :, 0], ring[:, :, -1] = 10, 10, 10, 10
+    th.testing.assert_close(inner.q_values(goals, ring), inner.q_values(goals, grids))
+    np.testing.assert_array_equal(inner._crop(grids), grids[:, 1:-1, 1:-1])
+    wide = grid_learners(spaces.Box(0, 10, (7, 9, 3), np.uint8), view="inner")
+    assert wide._crop(np.zeros((2, 7, 9, 3), np.uint8)).shape == (2, 5, 7, 3)
+
+
 @pytest.mark.parametrize("space, view, match", [
+    (GRID, "outer", "odd integer >= 1 .* or 'inner'"),
+    (spaces.Box(0, 10, (2, 2, 3), np.uint8), "inner", "at least 3 x 3"),
     (GRID, 4, "odd integer"),
     (GRID, 0, "odd integer"),
     (GRID, 9, "at most 7"),

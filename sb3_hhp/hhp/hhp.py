@@ -282,7 +282,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
         cost of a step stops growing once more sub-goals have been found; None: every sub-goal at each of its
         updates; see the README's Design), ``grouped_rounds`` (the learning rounds due at one step of the envs in
         one call), ``view`` (discrete actions: the learners read only the central ``view`` x ``view`` cells of an
-        ``(H, W, C)`` observation, on MiniGrid's egocentric canvas the cells around the agent; None: all of it)
+        ``(H, W, C)`` observation, on MiniGrid's egocentric canvas the cells around the agent; ``"inner"``: all but the
+        outermost ring, which on MiniGrid's canvas only ever shows the border wall; None: all of it)
     :param subpolicy_kwargs: arguments of the sub-goal learners, in SB3 DQN's names (discrete actions: over
         :data:`~sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWARGS`; ``PAPER_SUBPOLICY_KWARGS`` is the paper's learner;
         ``buffer_size`` is the shared replay's, in primitive transitions) or of each sub-goal's SB3 DDPG (continuous)

@@ -89,18 +89,27 @@ def default_subpolicy_kwargs() -> dict[str, Any]:
     )
 
 
-def view_cells(space: spaces.Space, view: Optional[int]) -> Optional[tuple[slice, slice]]:
+def view_cells(space: spaces.Space, view: Optional[int | str]) -> Optional[tuple[slice, slice]]:
     """The central ``view`` x ``view`` cells of ``(H, W, C)`` observations of ``space`` (rows, columns), after checking
-    that ``view`` can be read there; None without a view."""
+    that ``view`` can be read there; ``"inner"``: every cell but the outermost ring (on MiniGrid's egocentric canvas
+    the ring where only the grid's border wall ever shows: :func:`~sb3_hhp.goals.minigrid.egocentric_size`); None
+    without a view."""
     if view is None:
         return None
-    if isinstance(view, bool) or not isinstance(view, (int, np.integer)) or view < 1 or view % 2 == 0:
-        raise ValueError(f"view (subgoal_learner_kwargs) must be an odd integer >= 1 (cells around the centre), got {view!r}")
+    inner = isinstance(view, str) and view == "inner"
+    if not inner and (isinstance(view, bool) or not isinstance(view, (int, np.integer)) or view < 1 or view % 2 == 0):
+        raise ValueError(f"view (subgoal_learner_kwargs) must be an odd integer >= 1 (cells around the centre) or "
+                         f"'inner' (all but the outermost ring), got {view!r}")
     shape = getattr(space, "shape", None)
     if not isinstance(space, spaces.Box) or shape is None or len(shape) != 3:
         raise ValueError(f"view needs (H, W, C) observations, such as MiniGrid's egocentric canvas; got {space}: "
                          "leave view out (None)")
     side = min(shape[0], shape[1])
+    if inner:
+        if side < 3:
+            raise ValueError(f"view 'inner' needs observations of at least 3 x 3 cells, got {shape[0]} x {shape[1]}: "
+                             "leave view out (None)")
+        return slice(1, shape[0] - 1), slice(1, shape[1] - 1)
     if view > side:
         raise ValueError(f"view {view} is larger than the observation's {shape[0]} x {shape[1]} cells: use at most "
                          f"{side if side % 2 else side - 1}, or None for all")
@@ -152,8 +161,10 @@ class StackedDQN:
         :meth:`~sb3_hhp.goals.GoalSpace.action_mask`), applied to acting, exploring and the max of the targets;
         None: every action
     :param view: the learners read only the central ``view`` x ``view`` cells of an ``(H, W, C)`` observation (on
-        MiniGrid's egocentric canvas: the cells around the agent), odd; the replay keeps whole observations (the goal
-        space reads them). None: the whole observation
+        MiniGrid's egocentric canvas: the cells around the agent), odd; ``"inner"``: every cell but the outermost ring
+        (on MiniGrid's canvas it only ever shows the grid's border wall, so the learners lose nothing and their first
+        layer reads a quarter fewer inputs); the replay keeps whole observations (the goal space reads them). None: the
+        whole observation
     """
 
     #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
