@@ -399,6 +399,27 @@ def test_score_matrix_is_score_on_every_pair(space, head):
     assert np.ptp(matrix) > 1e-4  # the scores differ: the comparison is not between constants
 
 
+def test_score_matrix_scores_each_distinct_state_once(monkeypatch):
+    """A batch that repeats states (the meta-controller's samples of layout-free descriptions) is scored on its distinct
+    states only, and each row gets its own state's scores: the same matrix as scoring every row."""
+    rng = np.random.default_rng(1)
+    predictor = make_predictor(head="linear")
+    for _ in range(20):
+        s, g1, g2 = random_obs(rng, 3)
+        predictor.add(s, g1, g2, rng.choice([Label.FIRST, Label.SECOND]))
+    predictor.train()
+    distinct, goals = random_obs(rng, 4), random_obs(rng, 3)
+    order = rng.integers(0, 4, 40)
+    seen = []
+    original = predictor.network.score_matrix
+    monkeypatch.setattr(predictor.network, "score_matrix", lambda s, g: seen.append(len(s)) or original(s, g))
+    matrix = predictor.score_matrix(distinct[order], goals)
+    assert sum(seen) == len(np.unique(order))  # the network read each distinct state once
+    expected = np.stack([predictor.score_matrix(distinct[i : i + 1], goals)[0] for i in order])
+    np.testing.assert_allclose(matrix, expected, rtol=1e-6, atol=1e-7)
+    assert np.ptp(matrix) > 1e-4
+
+
 # ---------------------------------------------------------------- save / load, arguments
 
 

@@ -38,6 +38,18 @@ def _check_int(name: str, value: Any, minimum: int) -> None:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
 
 
+def unique_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of ``x`` (along its first axis, compared byte for byte) and, for each row, the index of its
+    distinct row: ``distinct[inverse]`` is ``x``."""
+    x = np.asarray(x)
+    if len(x) < 2:
+        return x, np.arange(len(x))
+    flat = np.ascontiguousarray(x).reshape(len(x), -1)
+    keys = flat.view(np.dtype((np.void, flat.dtype.itemsize * flat.shape[1])))[:, 0]
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    return x[first], inverse.reshape(-1)
+
+
 def _check_box(observation_space: Any) -> None:
     if not isinstance(observation_space, gymnasium.spaces.Box):
         raise ValueError(
@@ -349,11 +361,16 @@ class PreferencePredictor(OwnRandomState):
     def score_matrix(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """Scores ``p_hat(s_i, g_j)`` of every state with every goal, shape ``(N, G)``, without dropout: what
         :meth:`score` gives on every pair, with each state and each goal read once (the meta-controller's bonus
-        is centred over all sub-goals of each sampled state).
+        is centred over all sub-goals of each sampled state) and each distinct state scored once (a batch of
+        layout-free descriptions repeats a few of them).
 
         :param states: raw states ``(N, *obs_shape)``
         :param goals: raw goal observations ``(G, *obs_shape)``
         """
+        states = np.asarray(states)
+        distinct, inverse = unique_rows(states)
+        if len(distinct) < len(states):  # a batch repeats states (descriptions recur): each is scored once
+            return self.score_matrix(distinct, goals)[inverse]
         states_t, goals_t = self._to_tensor(states, "states"), self._to_tensor(goals, "goals")
         self.network.eval()
         rows = max(1, self.mask_batch_size // max(1, goals_t.shape[0]))
