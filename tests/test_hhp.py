@@ -949,6 +949,11 @@ def test_a_model_saved_with_the_ungrouped_arguments_loads_as_it_was_trained(tmp_
     assert (again.predictor.n_masks, again.subpolicies.max_updates, again.query_selector.threshold) == (7, 5, 0.1)
 
 
+def test_predictor_min_updates_reaches_the_predictor() -> None:
+    model = HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0"), seed=0, predictor_kwargs={"min_updates": 30})
+    assert model.predictor.min_updates == 30 and HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0")).predictor.min_updates == 0
+
+
 def test_moved_and_misspelt_grouped_arguments_are_refused_with_their_place() -> None:
     with pytest.raises(TypeError, match=r"'t_qry' is now a key of query_kwargs: write query_kwargs=dict\(threshold="):
         HhP("MlpPolicy", gym.make(DOORKEY), t_qry=0.3)

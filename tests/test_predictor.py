@@ -399,6 +399,46 @@ def test_score_matrix_is_score_on_every_pair(space, head):
     assert np.ptp(matrix) > 1e-4  # the scores differ: the comparison is not between constants
 
 
+@pytest.mark.parametrize("n_labels, min_updates, expected", [(8, 0, 4), (8, 50, 50), (8, 49, 49), (40, 50, 51),
+                                                             (40, 5, 12)])
+def test_train_makes_at_least_min_updates_minibatch_updates(monkeypatch, n_labels, min_updates, expected):
+    """``min_updates`` adds whole epochs until a call makes at least that many minibatch updates: 8 labels in minibatches
+    of 16 are one update an epoch (4 epochs: 4 updates); 40 labels are 3 an epoch (4 epochs: 12; 50 asked: 17
+    epochs, 51 updates)."""
+    rng = np.random.default_rng(0)
+    predictor = make_predictor(min_updates=min_updates)
+    for _ in range(n_labels):
+        s, g1, g2 = random_obs(rng, 3)
+        predictor.add(s, g1, g2, Label.FIRST)
+    steps = []
+    step = predictor.optimizer.step
+    monkeypatch.setattr(predictor.optimizer, "step", lambda *a, **k: steps.append(1) or step(*a, **k))
+    predictor.train()
+    assert len(steps) == expected
+
+
+def test_min_updates_below_zero_is_refused():
+    with pytest.raises(ValueError, match="min_updates"):
+        make_predictor(min_updates=-1)
+
+
+def test_min_updates_fits_labels_that_four_epochs_leave_unlearnt():
+    """With a few labels, 4 epochs are 4 updates: labels against what the others teach stay unlearnt. 1,000 updates fit
+    every label of the buffer."""
+    rng = np.random.default_rng(3)
+    goal_a, goal_b = random_obs(rng, 2)
+    states = random_obs(rng, 8)
+    labels = [Label.FIRST] * 6 + [Label.SECOND] * 2  # a preferred in six states, b in two
+    accuracies = {}
+    for min_updates in (0, 1000):
+        predictor = make_predictor(min_updates=min_updates)
+        for state, label in zip(states, labels):
+            predictor.add(state, goal_a, goal_b, label)
+            stats = predictor.train()  # once per answer, as HhP does
+        accuracies[min_updates] = stats["accuracy"]
+    assert accuracies[1000] == 1.0 and accuracies[0] < 1.0
+
+
 def test_score_matrix_scores_each_distinct_state_once(monkeypatch):
     """A batch that repeats states (the meta-controller's samples of layout-free descriptions) is scored on its distinct
     states only, and each row gets its own state's scores: the same matrix as scoring every row."""

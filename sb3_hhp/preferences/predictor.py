@@ -247,6 +247,10 @@ class PreferencePredictor(OwnRandomState):
     :param learning_rate: Adam learning rate, > 0 (paper: 1e-3)
     :param batch_size: minibatch size for training, >= 1 (paper: 128)
     :param n_epochs: epochs over the buffer per :meth:`train` call, >= 1 (paper: 4)
+    :param min_updates: fewest minibatch updates per :meth:`train` call, >= 0: with a buffer smaller than a
+        minibatch, ``n_epochs`` epochs are ``n_epochs`` updates, too few to fit a label that has just arrived (the
+        paper's 4 epochs were over hundreds of labels); whole epochs are added until there are at least this many.
+        0: ``n_epochs`` epochs
     :param buffer_size: capacity of the FIFO preference buffer ``R``, >= 1 (paper: the query budget)
     :param mask_batch_size: most rows (input x mask) sent through the network at once by
         :meth:`confidence` and :meth:`score`, >= 1; lower it for image inputs (one 84x84x4 frame
@@ -268,6 +272,7 @@ class PreferencePredictor(OwnRandomState):
         learning_rate: float = 1e-3,
         batch_size: int = 128,
         n_epochs: int = 4,
+        min_updates: int = 0,
         buffer_size: int = 200,
         mask_batch_size: int = 50_000,
         architecture: str = "auto",
@@ -278,6 +283,7 @@ class PreferencePredictor(OwnRandomState):
         _check_int("n_masks", n_masks, 1)
         _check_int("batch_size", batch_size, 1)
         _check_int("n_epochs", n_epochs, 1)
+        _check_int("min_updates", min_updates, 0)
         _check_int("buffer_size", buffer_size, 1)
         _check_int("mask_batch_size", mask_batch_size, 1)
         if not float(learning_rate) > 0:
@@ -298,6 +304,7 @@ class PreferencePredictor(OwnRandomState):
         self.learning_rate = float(learning_rate)
         self.batch_size = int(batch_size)
         self.n_epochs = int(n_epochs)
+        self.min_updates = int(min_updates)
         self.buffer_size = int(buffer_size)
         self.mask_batch_size = int(mask_batch_size)
         self.device = get_device(device)
@@ -499,7 +506,8 @@ class PreferencePredictor(OwnRandomState):
     def train(self, n_epochs: Optional[int] = None) -> dict[str, float]:
         """Fit the predictor on the buffer ``R`` (Algorithm 1, line 27): minibatch Adam on eq. 1-2.
 
-        :param n_epochs: passes over the buffer (>= 1); None uses ``self.n_epochs`` (paper: 4)
+        :param n_epochs: passes over the buffer (>= 1); None uses ``self.n_epochs`` (paper: 4); more whole passes
+            when they would make fewer than ``min_updates`` minibatch updates
         :return: ``loss``: mean training loss over the minibatches of this call; ``accuracy``:
             fraction of FIRST/SECOND tuples whose order the trained network (without dropout)
             predicts (nan without any). Both nan, and nothing trained, when the buffer is empty.
@@ -509,6 +517,9 @@ class PreferencePredictor(OwnRandomState):
         _check_int("n_epochs", n_epochs, 1)
         if self._size == 0:
             return {"loss": math.nan, "accuracy": math.nan}
+        per_epoch = math.ceil(self._size / self.batch_size)
+        min_updates = getattr(self, "min_updates", 0)  # (predictors pickled before the option have none)
+        n_epochs = max(n_epochs, math.ceil(min_updates / per_epoch))  # at least min_updates minibatch updates
         self.version += 1
         total_loss, total_count = 0.0, 0
         self.network.train()
