@@ -38,7 +38,7 @@ PACKAGE_DIR = pathlib.Path(sb3_hhp.__file__).parent
 ROOT = "sb3_hhp"
 
 LAYERS: tuple[frozenset[str], ...] = (
-    frozenset({"extras", "dqn", "curiosity", "goals", "preferences", "subgoal_table"}),
+    frozenset({"arrays", "extras", "dqn", "curiosity", "goals", "preferences", "subgoal_table"}),
     frozenset({"oracles"}),
     frozenset({"discovery", "hierarchy"}),
     frozenset({"hhp", ROOT}),

@@ -27,7 +27,7 @@ def label_agreement(model: HhP, store: PreferenceStore) -> list[dict]:
     for _, query, answer in store.answers_since(0):
         if answer.label not in (Label.FIRST, Label.SECOND):
             continue
-        state, goal1, goal2 = model.predictor_inputs(np.stack([query.state, query.goal1_obs, query.goal2_obs]))
+        state, goal1, goal2 = model.query_inputs(query)  # as the run fed the label to the predictor
         scores = model.predictor.score(np.stack([state, state]), np.stack([goal1, goal2]))
         info = query.info or {}
         rows.append(dict(goal1=info.get("goal1_name", query.goal1), goal2=info.get("goal2_name", query.goal2),

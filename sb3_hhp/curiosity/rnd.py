@@ -13,6 +13,8 @@ from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.torch_layers import NatureCNN
 from torch import nn
 
+from sb3_hhp.arrays import distinct_rows
+
 #: Smallest spatial side an image needs for the Nature conv stack (8x8/4, 4x4/2, 3x3/1) to leave one pixel.
 MIN_IMAGE_SIDE = 36
 #: Added to the observation variance before the square root, so that constant features do not divide by 0.
@@ -47,16 +49,6 @@ def _rms_from_dict(state: dict[str, Any]) -> RunningMeanStd:
     rms = RunningMeanStd(shape=mean.shape)
     rms.mean, rms.var, rms.count = mean, var, float(state["count"])
     return rms
-
-
-def _distinct_rows(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct rows of ``obs`` in order of first appearance, and the index of each row among them."""
-    first: dict[bytes, int] = {}
-    inverse = np.fromiter((first.setdefault(row.tobytes(), len(first)) for row in obs.reshape(len(obs), -1)),
-                          dtype=np.int64, count=len(obs))
-    keep = np.zeros(len(first), dtype=np.int64)
-    keep[inverse[::-1]] = np.arange(len(obs) - 1, -1, -1)  # the first row of each: written last
-    return obs[keep], inverse
 
 
 def _orthogonal_init(module: nn.Module) -> None:
@@ -359,7 +351,7 @@ class RND:
         if not self._memory:
             return np.zeros(len(obs), np.float32)
         # an episode revisits states (a random DoorKey-16x16 episode: 548 distinct of 2,561): each distinct one once
-        distinct, inverse = _distinct_rows(obs)
+        distinct, inverse = distinct_rows(obs)
         current = self._errors(distinct, self.predictor, self.obs_rms)
         old = np.mean([self._errors(distinct, snap.predictor, snap.obs_rms) for snap in self._memory], axis=0)
         return (current - old).astype(np.float32)[inverse]  # eq. 8

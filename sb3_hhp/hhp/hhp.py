@@ -657,10 +657,14 @@ class HhP(BetweenEpisodes, DoubleDQN):
         observations = self._env_layout(np.asarray(observations))
         return self.goal_space.features(observations) if self._predictor_reads_features else observations
 
+    def query_inputs(self, query: Any) -> np.ndarray:
+        """What the predictor reads of a question: its state and its two sub-goals, stacked."""
+        return self.predictor_inputs(np.stack([query.state, query.goal1_obs, query.goal2_obs]))
+
     def add_preference(self, query: Any, label: Any) -> bool:
         """Feed one answered query to the predictor's buffer R (False: the label teaches nothing, e.g.
         "incomparable")."""
-        state, goal1, goal2 = self.predictor_inputs(np.stack([query.state, query.goal1_obs, query.goal2_obs]))
+        state, goal1, goal2 = self.query_inputs(query)
         return self.predictor.add(state, goal1, goal2, label)
 
     @property

@@ -23,6 +23,7 @@ from stable_baselines3.common.preprocessing import (
 from stable_baselines3.common.utils import get_device
 from torch import nn
 
+from sb3_hhp.arrays import distinct_rows
 from sb3_hhp.preferences.seeding import OwnRandomState
 from sb3_hhp.preferences.types import Label
 
@@ -36,18 +37,6 @@ MIN_CNN_SIDE = 36
 def _check_int(name: str, value: Any, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-
-
-def unique_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct rows of ``x`` (along its first axis, compared byte for byte) and, for each row, the index of its
-    distinct row: ``distinct[inverse]`` is ``x``."""
-    x = np.asarray(x)
-    if len(x) < 2:
-        return x, np.arange(len(x))
-    flat = np.ascontiguousarray(x).reshape(len(x), -1)
-    keys = flat.view(np.dtype((np.void, flat.dtype.itemsize * flat.shape[1])))[:, 0]
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    return x[first], inverse.reshape(-1)
 
 
 def _check_box(observation_space: Any) -> None:
@@ -374,17 +363,15 @@ class PreferencePredictor(OwnRandomState):
         :param states: raw states ``(N, *obs_shape)``
         :param goals: raw goal observations ``(G, *obs_shape)``
         """
-        states = np.asarray(states)
-        distinct, inverse = unique_rows(states)
-        if len(distinct) < len(states):  # a batch repeats states (descriptions recur): each is scored once
-            return self.score_matrix(distinct, goals)[inverse]
         states_t, goals_t = self._to_tensor(states, "states"), self._to_tensor(goals, "goals")
+        distinct, inverse = distinct_rows(states_t.cpu().numpy())  # a batch repeats states: each is scored once
+        states_t = torch.as_tensor(distinct, device=self.device)
         self.network.eval()
         rows = max(1, self.mask_batch_size // max(1, goals_t.shape[0]))
         with torch.no_grad():
             scores = [self.network.score_matrix(states_t[start : start + rows], goals_t)
                       for start in range(0, states_t.shape[0], rows)]
-        return torch.cat(scores).cpu().numpy()
+        return torch.cat(scores).cpu().numpy()[inverse]
 
     def confidence(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """Predictive spread of the score over ``n_masks`` dropout masks (eq. 4); higher = less sure.
@@ -518,8 +505,7 @@ class PreferencePredictor(OwnRandomState):
         if self._size == 0:
             return {"loss": math.nan, "accuracy": math.nan}
         per_epoch = math.ceil(self._size / self.batch_size)
-        min_updates = getattr(self, "min_updates", 0)  # (predictors pickled before the option have none)
-        n_epochs = max(n_epochs, math.ceil(min_updates / per_epoch))  # at least min_updates minibatch updates
+        n_epochs = max(n_epochs, math.ceil(self.min_updates / per_epoch))  # at least min_updates minibatch updates
         self.version += 1
         total_loss, total_count = 0.0, 0
         self.network.train()
