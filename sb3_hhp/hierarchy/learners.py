@@ -267,7 +267,7 @@ class StackedDQN:
         self._views: dict[Any, Any] = {}  # views of the stacked tensors (_unflatten, _adam_rows)
         self.exp_avg = th.zeros_like(self.params)
         self.exp_avg_sq = th.zeros_like(self.params)
-        self.adam_steps = th.zeros(0, dtype=th.float64)
+        self.adam_steps = th.zeros(0, device=self.device)  # each sub-goal's Adam step count (float, as torch's Adam keeps it)
         self._capacity = 0
         self.own_steps = np.zeros(0, dtype=np.int64)  # steps each sub-goal acted
         self.ticks = np.zeros(0, dtype=np.int64)  # learning ticks
@@ -308,6 +308,12 @@ class StackedDQN:
         if np.array_equal(goals, np.arange(len(goals))):
             return slice(0, len(goals))
         return th.as_tensor(goals, device=self.device)
+
+    @staticmethod
+    def _take(stacked: th.Tensor, index: Any) -> th.Tensor:
+        """The rows ``index`` (of :meth:`_rows`) of a stacked tensor: a view for a slice, else gathered with
+        ``index_select`` (several times faster than indexing with a tensor on a CPU)."""
+        return stacked[index] if isinstance(index, slice) else th.index_select(stacked, 0, index)
 
     def _mlp_input(self, obs: th.Tensor) -> th.Tensor:
         """What a plain MLP reads of ``obs`` ``(T, N, ...)``: SB3's preprocessing, flattened to ``(T, N, D)``."""
@@ -369,7 +375,7 @@ class StackedDQN:
         self.params, self.target = extend(self.params), extend(self.target)
         self._views.clear()
         self.exp_avg, self.exp_avg_sq = extend(self.exp_avg), extend(self.exp_avg_sq)
-        steps = th.zeros(capacity, dtype=th.float64)
+        steps = th.zeros(capacity, device=self.device)
         steps[: len(self.adam_steps)] = self.adam_steps
         self.adam_steps = steps
         self._capacity = capacity
@@ -469,7 +475,7 @@ class StackedDQN:
         distinct, inverse = np.unique(goals, return_inverse=True)
         with th.no_grad():
             obs_t = self._tensor(np.asarray(obs))
-            q = self._vq(self.params[self._rows(distinct)], obs_t.unsqueeze(0).expand(len(distinct), *obs_t.shape))  # (U, n, A)
+            q = self._vq(self._take(self.params, self._rows(distinct)), obs_t.unsqueeze(0).expand(len(distinct), *obs_t.shape))  # (U, n, A)
             return q[th.as_tensor(inverse.reshape(-1), device=self.device), th.arange(len(goals), device=self.device)]
 
     def act(self, goals: np.ndarray, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
@@ -544,7 +550,7 @@ class StackedDQN:
         an env pursues now (``acting``) first, then those that waited longest; sorted."""
         if self.max_updates is None or len(goals) <= self.max_updates:
             return goals
-        pursued = np.isin(goals, acting)
+        pursued = (goals[:, None] == np.asarray(acting)[None, :]).any(axis=1)  # np.isin, without its fixed cost
         order = np.lexsort((goals, self.last_round[goals], ~pursued))  # pursued first, then the longest waiting
         return np.sort(goals[order[: self.max_updates]])
 
@@ -575,7 +581,7 @@ class StackedDQN:
         reps = len(plan) if same else 1
         learners = len(goals) // reps
         index = self._rows(goals[:learners])
-        params = self.params[index]
+        params = self._take(self.params, index)
 
         def per_learner(a: np.ndarray) -> np.ndarray:  # (reps * learners, m, ...) in plan order -> (learners, reps * m, ...)
             if reps == 1:
@@ -598,10 +604,10 @@ class StackedDQN:
             next_q_online = None
         with th.no_grad():
             if self._relu_mlp:  # the closing states as the online pass read them (converted once)
-                next_q_target = per_round(self._mlp_forward(self.target[index], outputs[0][:, reps * n :])[-1])  # (T, B or 2B, A)
+                next_q_target = per_round(self._mlp_forward(self._take(self.target, index), outputs[0][:, reps * n :])[-1])  # (T, B or 2B, A)
             else:
                 next_obs_t = self._tensor(next_obs)
-                next_q_target = self._vq(self.target[index], next_obs_t)
+                next_q_target = self._vq(self._take(self.target, index), next_obs_t)
             if not self.double_q:
                 next_q_online = next_q_target
             elif next_q_online is None:
@@ -624,6 +630,7 @@ class StackedDQN:
             grad = grads[0] if reps == 1 else th.cat(grads)
         else:
             (grad,) = th.autograd.grad(loss.sum(), [params])
+        grad = self._clip(grad)  # grad is ours
         start = 0
         for number, round_goals in enumerate(plan, start=first_round):
             self._adam(round_goals, grad[start : start + len(round_goals)], number)
@@ -634,24 +641,27 @@ class StackedDQN:
         self.last_loss = float(loss.mean().detach())
         return self.last_loss
 
-    def _adam_rows(self) -> tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor]]:
-        """Each sub-goal's row of the parameters and of Adam's two moments (views, updated in place), kept until the
-        stacked tensors grow."""
+    def _adam_rows(self) -> tuple[list[th.Tensor], ...]:
+        """Each sub-goal's row of the parameters, of Adam's two moments and of the step counts (views, updated in
+        place), kept until the stacked tensors grow."""
         key = "adam"  # emptied when the stacked tensors grow
         if key not in self._views:
-            self._views[key] = tuple(list(tensor.unbind(0)) for tensor in (self.params, self.exp_avg, self.exp_avg_sq))
+            self._views[key] = tuple(list(tensor.unbind(0))
+                                     for tensor in (self.params, self.exp_avg, self.exp_avg_sq, self.adam_steps))
         return self._views[key]
+
+    def _clip(self, grad: th.Tensor) -> th.Tensor:
+        """Each row's (sub-goal's) gradient norm clipped to ``max_grad_norm``, as SB3 clips a model's (in place)."""
+        return grad.mul_(th.clamp(self.max_grad_norm / (th.linalg.vector_norm(grad, dim=1, keepdim=True) + 1e-6), max=1.0))
 
     def _adam(self, goals: np.ndarray, grad: th.Tensor, round_number: int, betas: tuple[float, float] = (0.9, 0.999),
               eps: float = 1e-8) -> None:
-        """Adam (torch's, its fused kernel) with each sub-goal's own step count, after clipping each sub-goal's
-        gradient norm to ``max_grad_norm`` (as SB3 clips a model's); the rows of ``goals`` (distinct) are updated in
-        place; ``round_number``: the learning round's."""
-        grad = grad.mul_(th.clamp(self.max_grad_norm / (grad.norm(dim=1, keepdim=True) + 1e-6), max=1.0))  # grad is ours
-        counts = self.adam_steps.numpy()  # the step counts (a CPU tensor), counted through a view of it
-        counts[goals] += 1
-        steps = [th.tensor(step, device=self.device) for step in counts[goals].tolist()]
+        """Adam (torch's, its fused kernel) with each sub-goal's own step count on the (clipped, :meth:`_clip`)
+        gradient rows ``grad`` of ``goals`` (distinct), whose rows are updated in place; ``round_number``: the
+        learning round's."""
         rows = self._adam_rows()
+        steps = [rows[3][g] for g in goals]
+        th._foreach_add_(steps, 1.0)  # as torch's Adam counts its step before the update
         th._fused_adam_([rows[0][g] for g in goals], list(grad.unbind(0)), [rows[1][g] for g in goals],
                         [rows[2][g] for g in goals], [], steps, lr=self.lr, beta1=betas[0], beta2=betas[1],
                         weight_decay=0.0, eps=eps, amsgrad=False, maximize=False)
