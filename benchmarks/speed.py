@@ -36,6 +36,12 @@ second a run could not exceed even if nothing else cost anything::
 
     python benchmarks/speed.py floor --env MiniGrid-DoorKey-8x8-v0 --n-envs 8
 
+``parts``: where a step's time goes against the flat DQN, from one saved state of a run (as ``ab``): ``--repeats``
+alternating pairs of ``--profile-steps`` steps, HhP as it is (the time inside the sub-goal learners' grouped updates
+counted apart) and HhP with those updates left out (everything else a step costs); the flat DQN timed as in ``ratio``::
+
+    python benchmarks/speed.py parts --env MiniGrid-DoorKey-8x8-v0 --n-envs 8 --seed 2 --start 25000 --profile-steps 5000
+
 Results are JSON files under ``--out``; say the machine's load next to the figures (the script records the load
 average at its start and end).
 """
@@ -198,6 +204,56 @@ def learners_ab(args: argparse.Namespace) -> dict[str, Any]:
                 subgoals_a=subgoals["a"], subgoals_b=subgoals["b"], median_ratio_b_to_a=round(float(np.median(ratios)), 3))
 
 
+def parts(args: argparse.Namespace) -> dict[str, Any]:
+    """HhP trained to ``--start`` steps and saved with its replays; then ``--repeats`` times, alternately, trained
+    ``--profile-steps`` more from that state as it is (the seconds inside ``train_rounds``, the sub-goal learners'
+    grouped updates, counted) and with those updates left out; the flat DQN as in ``ratio``."""
+    entry, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
+    dqn, learning = flat_dqn(args, kwargs)
+    dqn_before = timed_window(dqn, args.start, args.start + args.profile_steps)
+    folder = pathlib.Path(tempfile.mkdtemp(prefix="hhp_parts_"))
+    hhp = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **as_trained(kwargs, folder))
+    hhp.learn(args.start)
+    hhp.save(folder / "snapshot.zip")
+    hhp.save_replay_buffer(folder / "snapshot_replay.pkl")
+    fps: dict[str, list[float]] = {"full": [], "no_updates": []}
+    update_ms, learner_updates = [], []
+    for repeat in range(args.repeats):
+        for name in fps:
+            model = HhP.load(folder / "snapshot.zip", env=make_envs(args.env, args.n_envs, args.seed + 1 + repeat))
+            model.load_replay_buffer(folder / "snapshot_replay.pkl")
+            learners, spent = model.subpolicies, [0.0]
+            train_rounds, updates_before = learners.train_rounds, int(learners.n_updates.sum())
+
+            def timed_rounds(plan: list, first_round: int = 0) -> float:
+                begin = time.perf_counter()
+                loss = train_rounds(plan, first_round=first_round)
+                spent[0] += time.perf_counter() - begin
+                return loss
+
+            # an instance attribute: the learners' own method is not changed for other models
+            learners.train_rounds = timed_rounds if name == "full" else (lambda plan, first_round=0: 0.0)
+            steps_before = model.num_timesteps
+            fps[name].append(round(timed_steps(model, args.profile_steps), 1))
+            if name == "full":  # learn() ends with an episode: count the steps it made
+                vec_steps = (model.num_timesteps - steps_before) / args.n_envs
+                update_ms.append(round(1000 * spent[0] / vec_steps, 3))
+                learner_updates.append(round((int(learners.n_updates.sum()) - updates_before) / vec_steps, 2))
+    dqn_after = timed_steps(dqn, args.profile_steps)
+    dqn_fps = (dqn_before + dqn_after) / 2
+    full, bare = float(np.median(fps["full"])), float(np.median(fps["no_updates"]))
+    vec_ms = lambda steps_per_s: 1000 * args.n_envs / steps_per_s  # noqa: E731  (ms a step of the n envs)
+    return dict(env=args.env, entry=entry, hhp_kwargs=json.loads(args.hhp_kwargs), seed=args.seed, n_envs=args.n_envs,
+                snapshot_steps=hhp.num_timesteps, snapshot_subgoals=len(hhp.subgoals), steps=args.profile_steps,
+                fps_full=fps["full"], fps_without_learner_updates=fps["no_updates"],
+                learner_updates_ms_per_vec_step=update_ms, learner_updates_per_vec_step=learner_updates,
+                dqn_fps=round(dqn_fps, 1), dqn_fps_before=round(dqn_before, 1), dqn_fps_after=round(dqn_after, 1),
+                ratio=round(full / dqn_fps, 3), ratio_without_learner_updates=round(bare / dqn_fps, 3),
+                ms_per_vec_step=dict(hhp=round(vec_ms(full), 3), hhp_without_learner_updates=round(vec_ms(bare), 3),
+                                     dqn=round(vec_ms(dqn_fps), 3), half_dqn_speed=round(2 * vec_ms(dqn_fps), 3)),
+                dqn_learning=learning)
+
+
 def distinct_states(env_id: str, n: int, seed: int) -> list[np.ndarray]:
     """``n`` observations from random play, of as many distinct sub-goal keys as the env shows (then repeated)."""
     from sb3_hhp.goals import make_goal_space
@@ -284,7 +340,7 @@ def floor(args: argparse.Namespace) -> dict[str, Any]:
         return learners._mlp_backward(params, outputs, grad_q)
 
     products_seconds = median_seconds(products, 100)
-    with_adam_seconds = median_seconds(lambda: learners._adam(goals, products(), 1), 100)
+    with_adam_seconds = median_seconds(lambda: learners._adam(goals, learners._clip(products()), 1), 100)
     rounds_per_step = 1 / learners.train_freq
     cap = lambda seconds: 1 / (env_seconds + rounds_per_step * seconds)  # noqa: E731
     return dict(env=args.env, n_envs=args.n_envs, learners_per_round=k, batch_size=batch, rows_online=batch + closing,
@@ -298,7 +354,7 @@ def floor(args: argparse.Namespace) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["ratio", "late", "subgoals", "ab", "one", "floor"])
+    parser.add_argument("what", choices=["ratio", "late", "subgoals", "ab", "one", "floor", "parts"])
     parser.add_argument("--env", default="MiniGrid-DoorKey-8x8-v0")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--start", type=int, default=20_000, help="primitive steps before the timed window")
@@ -312,7 +368,7 @@ def main() -> None:
     parser.add_argument("--name", default=None, help="the result file's name (default: the measurement's)")
     parser.add_argument("--learners-a", default="{}", help="ab: JSON, sub-goal learner attributes of A")
     parser.add_argument("--learners-b", default='{"grouped_rounds": true}', help="ab: JSON, the same for B")
-    parser.add_argument("--repeats", type=int, default=4, help="ab: A-B pairs")
+    parser.add_argument("--repeats", type=int, default=4, help="ab, parts: pairs")
     parser.add_argument("--out", default="benchmarks/results/speed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (HhP and the flat DQN alike)")
     args = parser.parse_args()
@@ -322,7 +378,7 @@ def main() -> None:
         return
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()[0]
-    result = {"ratio": ratio, "late": late, "subgoals": subgoals, "ab": learners_ab, "floor": floor}[args.what](args)
+    result = {"ratio": ratio, "late": late, "subgoals": subgoals, "ab": learners_ab, "floor": floor, "parts": parts}[args.what](args)
     result.update(threads=args.threads, load_average_start=round(load_before, 2), load_average_end=round(os.getloadavg()[0], 2),
                   command=" ".join(sys.argv))
     (pathlib.Path(args.out) / f"{args.name or args.what}.json").write_text(json.dumps(result, indent=2) + "\n")
