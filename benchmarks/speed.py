@@ -177,23 +177,35 @@ def late(args: argparse.Namespace) -> dict[str, Any]:
                 num_subgoals=len(hhp.subgoals), dqn_learning=learning)
 
 
+def snapshot(args: argparse.Namespace, kwargs: dict[str, Any], prefix: str) -> tuple[HhP, pathlib.Path]:
+    """HhP trained to ``--start`` steps, saved with its replays in a fresh folder: the model and the folder."""
+    folder = pathlib.Path(tempfile.mkdtemp(prefix=prefix))
+    hhp = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **as_trained(kwargs, folder))
+    hhp.learn(args.start)
+    hhp.save(folder / "snapshot.zip")
+    hhp.save_replay_buffer(folder / "snapshot_replay.pkl")
+    return hhp, folder
+
+
+def from_snapshot(args: argparse.Namespace, folder: pathlib.Path, repeat: int) -> HhP:
+    """The :func:`snapshot` of ``folder`` loaded with its replays, on fresh envs of their own (one seed a repeat)."""
+    model = HhP.load(folder / "snapshot.zip", env=make_envs(args.env, args.n_envs, args.seed + 1 + repeat))
+    model.load_replay_buffer(folder / "snapshot_replay.pkl")
+    return model
+
+
 def learners_ab(args: argparse.Namespace) -> dict[str, Any]:
     """HhP trained to ``--start`` steps and saved with its replays; then ``--repeats`` times, alternately, loaded and
     trained ``--profile-steps`` more with the learner settings of ``--learners-a`` and of ``--learners-b``: two
     settings of the sub-goal learners from one state, timed side by side (the machine drifts)."""
     _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
-    folder = pathlib.Path(tempfile.mkdtemp(prefix="hhp_ab_"))
-    hhp = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **as_trained(kwargs, folder))
-    hhp.learn(args.start)
-    hhp.save(folder / "snapshot.zip")
-    hhp.save_replay_buffer(folder / "snapshot_replay.pkl")
+    hhp, folder = snapshot(args, kwargs, "hhp_ab_")
     settings = {"a": json.loads(args.learners_a), "b": json.loads(args.learners_b)}
     fps: dict[str, list[float]] = {"a": [], "b": []}
     subgoals: dict[str, list[int]] = {"a": [], "b": []}
     for repeat in range(args.repeats):
         for name, values in settings.items():
-            model = HhP.load(folder / "snapshot.zip", env=make_envs(args.env, args.n_envs, args.seed + 1 + repeat))
-            model.load_replay_buffer(folder / "snapshot_replay.pkl")
+            model = from_snapshot(args, folder, repeat)
             for key, value in values.items():  # the learners' attributes (e.g. grouped_rounds, max_updates)
                 setattr(model.subpolicies, key, value)
             fps[name].append(round(timed_steps(model, args.profile_steps), 1))
@@ -211,17 +223,12 @@ def parts(args: argparse.Namespace) -> dict[str, Any]:
     entry, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
     dqn, learning = flat_dqn(args, kwargs)
     dqn_before = timed_window(dqn, args.start, args.start + args.profile_steps)
-    folder = pathlib.Path(tempfile.mkdtemp(prefix="hhp_parts_"))
-    hhp = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **as_trained(kwargs, folder))
-    hhp.learn(args.start)
-    hhp.save(folder / "snapshot.zip")
-    hhp.save_replay_buffer(folder / "snapshot_replay.pkl")
+    hhp, folder = snapshot(args, kwargs, "hhp_parts_")
     fps: dict[str, list[float]] = {"full": [], "no_updates": []}
     update_ms, learner_updates = [], []
     for repeat in range(args.repeats):
         for name in fps:
-            model = HhP.load(folder / "snapshot.zip", env=make_envs(args.env, args.n_envs, args.seed + 1 + repeat))
-            model.load_replay_buffer(folder / "snapshot_replay.pkl")
+            model = from_snapshot(args, folder, repeat)
             learners, spent = model.subpolicies, [0.0]
             train_rounds, updates_before = learners.train_rounds, int(learners.n_updates.sum())
 

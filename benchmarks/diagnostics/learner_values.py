@@ -73,10 +73,11 @@ def main() -> None:
     learners = model.subpolicies
     q = learners.q_values(np.full(len(obs), goal), obs).cpu().numpy().astype(float)
     mask = learners._mask(obs)
-    others = np.where(mask, q, -np.inf) if mask is not None else q.copy()
+    allowed = np.where(mask, q, -np.inf) if mask is not None else q
+    greedy = allowed.argmax(axis=1)  # the learner's greedy action, as its act(deterministic=True) takes it
+    others = allowed.copy()
     others[:, PICKUP] = -np.inf
     gap = q[:, PICKUP] - others.max(axis=1)
-    greedy = learners.act(np.full(len(obs), goal), obs, deterministic=True)
     result = dict(model=args.model, env=args.env, subgoal=GOAL, states=len(obs), layouts=args.layouts,
                   greedy_pickup=float(np.mean(greedy == PICKUP)), q_pickup_mean=float(q[:, PICKUP].mean()),
                   q_best_other_mean=float(others.max(axis=1).mean()), gap_mean=float(gap.mean()),

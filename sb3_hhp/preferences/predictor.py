@@ -317,14 +317,18 @@ class PreferencePredictor(OwnRandomState):
 
     # ------------------------------------------------------------------ randomness
     # ------------------------------------------------------------------ inputs
-    def _to_tensor(self, obs: Union[np.ndarray, torch.Tensor], name: str) -> torch.Tensor:
+    def _batched(self, obs: Union[np.ndarray, torch.Tensor], name: str) -> torch.Tensor:
+        """``obs`` as a batch ``(N, *obs_shape)`` where it is (a single observation gains a leading 1), checked."""
         obs = torch.as_tensor(np.asarray(obs) if not isinstance(obs, torch.Tensor) else obs)
         shape = tuple(self.observation_space.shape)
         if tuple(obs.shape) == shape:
             obs = obs.unsqueeze(0)
         if tuple(obs.shape[1:]) != shape:
             raise ValueError(f"{name} must have shape (N, {', '.join(map(str, shape))}), got {tuple(obs.shape)}")
-        return obs.to(self.device)
+        return obs
+
+    def _to_tensor(self, obs: Union[np.ndarray, torch.Tensor], name: str) -> torch.Tensor:
+        return self._batched(obs, name).to(self.device)
 
     def _pairs(
         self, states: Union[np.ndarray, torch.Tensor], goals: Union[np.ndarray, torch.Tensor]
@@ -363,9 +367,9 @@ class PreferencePredictor(OwnRandomState):
         :param states: raw states ``(N, *obs_shape)``
         :param goals: raw goal observations ``(G, *obs_shape)``
         """
-        states_t, goals_t = self._to_tensor(states, "states"), self._to_tensor(goals, "goals")
-        distinct, inverse = distinct_rows(states_t.cpu().numpy())  # a batch repeats states: each is scored once
-        states_t = torch.as_tensor(distinct, device=self.device)
+        # a batch repeats states: each is scored once (found where the states are, before they go to the device)
+        distinct, inverse = distinct_rows(self._batched(states, "states").cpu().numpy())
+        states_t, goals_t = torch.as_tensor(distinct, device=self.device), self._to_tensor(goals, "goals")
         self.network.eval()
         rows = max(1, self.mask_batch_size // max(1, goals_t.shape[0]))
         with torch.no_grad():
