@@ -13,7 +13,7 @@ from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace,
 from sb3_hhp.goals.minigrid import GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, NO_GOAL_SQUARE, OPEN_DOORS
 from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query
 from sb3_hhp.oracles.registry import make_oracle
-from sb3_hhp.oracles.scripted import plan_keys
+from sb3_hhp.oracles.scripted import plan_keys, plan_steps
 
 EMPTY = OBJECT_TO_IDX["empty"]
 WALL = OBJECT_TO_IDX["wall"]
@@ -337,6 +337,29 @@ def test_scripted_oracle_preferences(env_id: str) -> None:
     env.close()
 
 
+def test_the_locked_door_walked_past_is_no_milestone() -> None:
+    """DoorKey-8x8 seed 9: a shortest plan turns past the locked door, empty-handed, on its way to the key. The
+    oracle still names the key first; facing the key, the door just opened and the goal are where the plan acts."""
+    env = wrap_env(gym.make("MiniGrid-DoorKey-8x8-v0"))
+    env.reset(seed=9)
+    goal_space = MiniGridGoalSpace()
+    start = goal_space.privileged(env)
+    steps = plan_steps(start, goal_space)
+    keys = [key for key, _ in steps]
+    assert plan_keys(start, goal_space) == keys
+    assert keys.index(FACING_LOCKED_DOOR) < keys.index(FACING_KEY)  # the layout this test is about
+    acted = dict(reversed(steps))  # each key's first occurrence
+    assert not acted[FACING_LOCKED_DOOR]
+    assert acted[FACING_KEY] and acted[CARRYING_KEY] and acted[CARRYING_KEY_FACING_LOCKED_DOOR]
+    assert acted[CARRYING_KEY_FACING_OPEN_DOOR] and acted[CARRYING_KEY_FACING_GOAL]
+    oracle = MiniGridScriptedOracle()
+    assert oracle.answer(_query(start, FACING_KEY, FACING_LOCKED_DOOR)) == Label.FIRST
+    assert oracle.answer(_query(start, FACING_LOCKED_DOOR, FACING_KEY)) == Label.SECOND
+    # walked past, the door still ranks before what the plan never meets
+    assert oracle.answer(_query(start, FACING_LOCKED_DOOR, (EMPTY, OBJECT_TO_IDX["ball"], 0))) == Label.FIRST
+    env.close()
+
+
 def test_scripted_oracle_needs_privileged_info() -> None:
     zeros = np.zeros((3, 3, 3), np.uint8)
     query = Query(state=zeros, goal1=0, goal2=1, goal1_obs=zeros, goal2_obs=zeros, info={})
@@ -610,13 +633,13 @@ def test_the_oracle_falls_back_to_a_weighted_search(monkeypatch: pytest.MonkeyPa
 
     def plan(info, goal_space, max_seconds=None, weight=1.0, **kwargs):
         calls.append((weight, max_seconds))
-        return None if weight == 1.0 else [SUCCESS_KEY]
+        return None if weight == 1.0 else [(SUCCESS_KEY, False)]
 
     oracle = MiniGridScriptedOracle(max_seconds=2.0, fallback_weight=3.0)
-    monkeypatch.setattr(scripted, "plan_keys", plan)
-    assert oracle.plan(state) == [SUCCESS_KEY] and oracle.last_plan_weight == 3.0
+    monkeypatch.setattr(scripted, "plan_steps", plan)
+    assert oracle.plan(state) == [(SUCCESS_KEY, False)] and oracle.last_plan_weight == 3.0
     assert calls == [(1.0, 0.5), (3.0, 1.5)]
-    monkeypatch.setattr(scripted, "plan_keys", lambda *args, **kwargs: None)
+    monkeypatch.setattr(scripted, "plan_steps", lambda *args, **kwargs: None)
     assert oracle.answer(_query(state, FACING_KEY, FACING_LOCKED_DOOR)) == Label.INCOMPARABLE
     monkeypatch.undo()
     assert oracle.plan(state) is not None and oracle.last_plan_weight == 1.0

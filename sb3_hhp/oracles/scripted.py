@@ -5,12 +5,13 @@ ObstructedMaze, ...) the oracle searches a shortest action sequence from the que
 (stepping on the goal square, or picking up the mission's object), by A* over MiniGrid's own rules (turn,
 forward, pick up, drop, toggle a door, with a key of its colour when locked, or a box, which leaves what it
 holds), bounded in time per question (a plan at most a few times as long is taken when the shortest is not found
-in a quarter of that time). Along that plan it
-lists the sub-goal keys the agent passes. A sub-goal is better the sooner it comes *as a milestone*
-of the plan (facing a key, a door, a ball, a box or the goal, a change of what is carried, the task
-solved): the next step a person would name. Sub-goals that are on the plan only in passing ("facing
-an empty cell") rank after every milestone; sub-goals off the plan rank last; two sub-goals of the
-same rank are EQUAL, and a state with no plan at all gets INCOMPARABLE.
+in a quarter of that time). Along that plan it lists the sub-goal keys the agent passes. A sub-goal is better the
+sooner it comes *as a milestone* of the plan: facing a key, a door, a ball, a box or the goal, or a change of what is
+carried, where the plan acts (picks up, drops, opens or ends the task just before or just after), or the task
+solved: the next step a person would name. Facing an object the plan only walks past (the locked door on the way to
+its key) is no milestone there. Sub-goals that are on the plan only in passing ("facing an empty cell") rank after
+every milestone; sub-goals off the plan rank last; two sub-goals of the same rank are EQUAL, and a state with no
+plan at all gets INCOMPARABLE.
 """
 
 import heapq
@@ -38,6 +39,20 @@ def plan_keys(
 ) -> Optional[list[Hashable]]:
     """Sub-goal keys after each action of a shortest plan from the state described by ``info``
     (as written by :meth:`MiniGridGoalSpace.privileged`) to success; the last key is ``SUCCESS_KEY``.
+    :func:`plan_steps` with the keys alone (same arguments)."""
+    steps = plan_steps(info, goal_space, max_nodes=max_nodes, max_seconds=max_seconds, weight=weight,
+                       move_boxes=move_boxes)
+    return None if steps is None else [key for key, _ in steps]
+
+
+def plan_steps(
+    info: dict[str, Any], goal_space: Optional[MiniGridGoalSpace] = None, max_nodes: int = 300_000,
+    max_seconds: Optional[float] = None, weight: float = 1.0, move_boxes: bool = False,
+) -> Optional[list[tuple[Hashable, bool]]]:
+    """The sub-goal key after each action of a shortest plan from the state described by ``info``
+    (as written by :meth:`MiniGridGoalSpace.privileged`) to success, each with whether the plan *acts* there: the
+    action that led to it or the next one picks up, drops, opens a door or a box, or ends the task, rather than
+    turns or walks on. The last key is ``SUCCESS_KEY``.
 
     The search follows MiniGrid's rules: turn, forward onto empty, floor, goal or open-door cells, pick up a
     key, ball or box, drop onto an empty cell, open a closed door, unlock a locked door with a key of its colour,
@@ -52,7 +67,8 @@ def plan_keys(
         search by the cells it could be left on)
     :param weight: the heuristic's weight (weighted A*): 1 finds a shortest plan; w > 1 finds one at most w times as
         long as the shortest, usually far sooner
-    :return: the keys, ``[]`` when the state is already a success, ``None`` when no plan was found within the limits
+    :return: ``(key, acts)`` pairs, ``[]`` when the state is already a success, ``None`` when no plan was found
+        within the limits
     """
     if not weight >= 1.0:
         raise ValueError(f"weight must be >= 1, got {weight}")
@@ -159,9 +175,13 @@ def plan_keys(
         path.append(node)
         node = reached[node][1]
     path.reverse()
-    keys: list[Hashable] = [key_of(*node) for node in path[1:-1]]
-    keys.append(SUCCESS_KEY)
-    return keys
+    # an action acts when it changes the load or the grid, or ends the task (the last one); a key is acted at when
+    # the action that led to it or the next one acts
+    acted = [before[3:] != after[3:] for before, after in zip(path[:-2], path[1:-1])] + [True]
+    steps: list[tuple[Hashable, bool]] = [(key_of(*node), acted[i] or acted[i + 1])
+                                          for i, node in enumerate(path[1:-1])]
+    steps.append((SUCCESS_KEY, False))
+    return steps
 
 
 def _held(held: Optional[Any]) -> tuple:
@@ -223,39 +243,48 @@ class MiniGridScriptedOracle(Oracle):
         self.fallback_weight = float(fallback_weight)
         self.last_plan_weight: Optional[float] = None  # which search found the last plan (1: a shortest one)
 
-    def plan(self, state: dict[str, Any]) -> Optional[list[Hashable]]:
-        """The sub-goal keys along a plan from ``state`` (:func:`plan_keys`) within ``max_seconds``: a shortest one,
-        else one at most ``fallback_weight`` times as long, else None."""
+    def plan(self, state: dict[str, Any]) -> Optional[list[tuple[Hashable, bool]]]:
+        """The sub-goal keys along a plan from ``state``, each with whether the plan acts there (:func:`plan_steps`),
+        within ``max_seconds``: a shortest one, else one at most ``fallback_weight`` times as long, else None."""
         self.last_plan_weight = None
         searches = ((1.0, 0.25), (self.fallback_weight, 0.75)) if self.fallback_weight > 1 else ((1.0, 1.0),)
         for weight, share in searches:
-            keys = plan_keys(state, self.goal_space, max_seconds=share * self.max_seconds, weight=weight)
-            if keys is not None:
+            steps = plan_steps(state, self.goal_space, max_seconds=share * self.max_seconds, weight=weight)
+            if steps is not None:
                 self.last_plan_weight = weight
-                return keys
+                return steps
         return None
 
-    def rank(self, keys: Optional[list[Hashable]], goal_key: Hashable, carried_before: int) -> float:
-        """Position of ``goal_key`` on the plan: milestones first, keys seen only in passing next, off-plan last."""
-        if not keys:
+    def milestone(self, key: Hashable, acts: bool, carried_before: int) -> bool:
+        """Whether ``key``, met on a plan that ``acts`` there or not (:func:`plan_steps`), is a step a person would
+        name: the task solved, or a change of what is carried or facing an object, where the plan acts (the door just
+        opened, the key about to be picked up; not the locked door passed on the way to its key)."""
+        return key == SUCCESS_KEY or (acts and self.goal_space.is_milestone(key, carried_before))
+
+    def rank(self, steps: Optional[list[tuple[Hashable, bool]]], goal_key: Hashable, carried_before: int) -> float:
+        """Position of ``goal_key`` on the plan ``steps`` (:meth:`plan`): milestones first, keys seen only in passing
+        next, off-plan last."""
+        if not steps:
             return np.inf
-        for step, key in enumerate(keys):
+        passing = None
+        for step, (key, acts) in enumerate(steps):
             if key == goal_key:
-                milestone = self.goal_space.is_milestone(key, carried_before)
-                return float(step) if milestone else float(len(keys) + step)
-        return np.inf
+                if self.milestone(key, acts, carried_before):
+                    return float(step)
+                passing = step if passing is None else passing
+        return np.inf if passing is None else float(len(steps) + passing)
 
     def answer(self, query: Query) -> Label:
         missing = [name for name in ("state", "goal1_key", "goal2_key") if name not in query.info]
         if missing:
             raise ValueError(f"The scripted MiniGrid oracle needs {missing} in Query.info (use a MiniGrid goal space)")
         state = query.info["state"]
-        keys = self.plan(state)
-        if keys is None:
+        steps = self.plan(state)
+        if steps is None:
             return Label.INCOMPARABLE
         carried = state["carrying"][0] if state.get("carrying") is not None else EMPTY
-        rank1 = self.rank(keys, _as_key(query.info["goal1_key"]), carried)
-        rank2 = self.rank(keys, _as_key(query.info["goal2_key"]), carried)
+        rank1 = self.rank(steps, _as_key(query.info["goal1_key"]), carried)
+        rank2 = self.rank(steps, _as_key(query.info["goal2_key"]), carried)
         if rank1 == rank2:
             return Label.EQUAL
         return Label.FIRST if rank1 < rank2 else Label.SECOND
