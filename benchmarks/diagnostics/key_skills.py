@@ -21,7 +21,7 @@ import argparse
 import json
 import pathlib
 import sys
-from typing import Optional
+from typing import Any, Optional
 
 import gymnasium as gym
 import numpy as np
@@ -48,12 +48,17 @@ def newest_checkpoint(run: str) -> tuple[str, int, str]:
     return checkpoint["model"], checkpoint["timesteps"], checkpoint["replay"]
 
 
+def key_cell(base: Any) -> tuple[int, int]:
+    """The cell of the key in an unwrapped MiniGrid env's grid."""
+    return next((i, j) for i in range(base.grid.width) for j in range(base.grid.height)
+                if isinstance(base.grid.get(i, j), Key))
+
+
 def key_carried(env: gym.Env, seed: int, heading: int) -> np.ndarray:
     """A fresh layout with the agent on the key's cell, carrying it, facing ``heading``: its observation."""
     env.reset(seed=seed)
     base = env.unwrapped
-    cell = next((i, j) for i in range(base.grid.width) for j in range(base.grid.height)
-                if isinstance(base.grid.get(i, j), Key))
+    cell = key_cell(base)
     base.carrying = base.grid.get(*cell)
     base.grid.set(*cell, None)
     base.agent_pos, base.agent_dir = np.array(cell), heading

@@ -19,10 +19,9 @@ import sys
 
 import gymnasium as gym
 import numpy as np
-from minigrid.core.world_object import Key
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
-from benchmarks.diagnostics.key_skills import HEADINGS  # noqa: E402
+from benchmarks.diagnostics.key_skills import HEADINGS, key_cell  # noqa: E402
 from sb3_hhp import HhP  # noqa: E402
 from sb3_hhp.goals import wrap_env  # noqa: E402
 
@@ -34,7 +33,7 @@ def facing_key(env: gym.Env, seed: int) -> list[np.ndarray]:
     """Observations of a fresh layout with the agent empty-handed on each free cell next to the key, facing it."""
     env.reset(seed=seed)
     base = env.unwrapped
-    key = next((i, j) for i in range(base.grid.width) for j in range(base.grid.height) if isinstance(base.grid.get(i, j), Key))
+    key = key_cell(base)
     states = []
     for heading, (dx, dy) in enumerate(HEADINGS):
         cell = (key[0] - dx, key[1] - dy)  # facing `heading` from here looks at the key

@@ -271,7 +271,8 @@ class MiniGridScriptedOracle(Oracle):
             if key == goal_key:
                 if self.milestone(key, acts, carried_before):
                     return float(step)
-                passing = step if passing is None else passing
+                if passing is None:
+                    passing = step
         return np.inf if passing is None else float(len(steps) + passing)
 
     def answer(self, query: Query) -> Label:
