@@ -42,12 +42,18 @@ counted apart) and HhP with those updates left out (everything else a step costs
 
     python benchmarks/speed.py parts --env MiniGrid-DoorKey-8x8-v0 --n-envs 8 --seed 2 --start 25000 --profile-steps 5000
 
+``entry``: HhP as the env's YAML entry trains it, whatever the env (its policy, observation wrapper and number of
+envs: Atari's CnnPolicy on 84x84 frames too), timed over a window; ``--hhp-kwargs`` sets e.g. the device::
+
+    python benchmarks/speed.py entry --env ALE/Pong-v5 --start 1000 --stop 2000 --hhp-kwargs '{"device": "cuda"}'
+
 Results are JSON files under ``--out``; say the machine's load next to the figures (the script records the load
 average at its start and end).
 """
 
 import argparse
 import cProfile
+import importlib
 import json
 import os
 import pathlib
@@ -141,10 +147,35 @@ def flat_dqn(args: argparse.Namespace, kwargs: dict[str, Any]) -> tuple[DQN, dic
     net_arch = (sub.get("policy_kwargs") or {}).get("net_arch", [64, 64])
     dqn = DQN("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), learning_starts=sub["learning_starts"],
               batch_size=sub["batch_size"], train_freq=sub["train_freq"], gradient_steps=max(1, args.n_envs // sub["train_freq"]),
-              buffer_size=50_000, policy_kwargs=dict(net_arch=net_arch), seed=args.seed)
+              buffer_size=50_000, policy_kwargs=dict(net_arch=net_arch), seed=args.seed,
+              device=kwargs.get("device", "auto"))  # where HhP's networks are (``--hhp-kwargs '{"device": "cpu"}'``)
     if args.n_envs > 1:  # SB3's train_freq counts steps of the VecEnv: one update per train_freq primitive steps
         dqn.train_freq = TrainFreq(1, TrainFrequencyUnit.STEP)
     return dqn, dict(net_arch=net_arch, train_freq=sub["train_freq"], batch_size=sub["batch_size"])
+
+
+def entry_speed(args: argparse.Namespace) -> dict[str, Any]:
+    """HhP as the env's YAML entry trains it (its policy, ``env_wrapper`` and ``n_envs`` unless ``--n-envs`` says
+    otherwise), timed over steps ``--start`` to ``--stop``, with ``--hhp-kwargs`` over the entry's (e.g. the device)."""
+    if args.env.startswith("ALE/"):
+        import ale_py
+
+        gym.register_envs(ale_py)
+    table = yaml.safe_load(default_config_path().read_text())
+    entry = table[select_entry(table, args.env)]
+    _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
+    wrapper = entry.get("env_wrapper")
+    if wrapper:
+        module, _, name = wrapper.rpartition(".")
+        wrapper = getattr(importlib.import_module(module), name)
+    n_envs = args.n_envs or entry.get("n_envs", 1)
+    envs = make_vec_env(args.env, n_envs=n_envs, wrapper_class=wrapper, seed=args.seed)
+    folder = pathlib.Path(tempfile.mkdtemp(prefix="hhp_speed_"))
+    model = HhP(entry.get("policy", "MlpPolicy"), envs, seed=args.seed, **as_trained(kwargs, folder))
+    fps = timed_window(model, args.start, args.stop)
+    return dict(env=args.env, hhp_kwargs=json.loads(args.hhp_kwargs), window=[args.start, args.stop], seed=args.seed,
+                n_envs=n_envs, policy=entry.get("policy"), device=str(model.device), hhp_fps=round(fps, 2),
+                num_subgoals=len(model.subgoals), peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1))
 
 
 def write_profile(profiler: cProfile.Profile, path: pathlib.Path, title: str) -> None:
@@ -361,13 +392,14 @@ def floor(args: argparse.Namespace) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["ratio", "late", "subgoals", "ab", "one", "floor", "parts"])
+    parser.add_argument("what", choices=["ratio", "late", "subgoals", "ab", "one", "floor", "parts", "entry"])
     parser.add_argument("--env", default="MiniGrid-DoorKey-8x8-v0")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--start", type=int, default=20_000, help="primitive steps before the timed window")
     parser.add_argument("--stop", type=int, default=30_000, help="primitive steps at the end of the timed window")
     parser.add_argument("--profile-steps", type=int, default=5_000)
-    parser.add_argument("--n-envs", type=int, default=1, help="envs stepped together (HhP and the flat DQN alike)")
+    parser.add_argument("--n-envs", type=int, default=None,
+                        help="envs stepped together (HhP and the flat DQN alike; default 1, entry: the entry's n_envs)")
     parser.add_argument("--counts", type=int, nargs="+", default=[2, 32], help="sub-goal counts (subgoals)")
     parser.add_argument("--k", type=int, default=2, help=argparse.SUPPRESS)
     parser.add_argument("--hhp-kwargs", default="{}", help="JSON: HhP arguments over the entry's, e.g. '{\"subgoal_learner\": \"heads\"}'")
@@ -380,12 +412,15 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (HhP and the flat DQN alike)")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
+    if args.what != "entry" and args.n_envs is None:
+        args.n_envs = 1
     if args.what == "one":
         print(json.dumps(one_subgoal_count(args)))
         return
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()[0]
-    result = {"ratio": ratio, "late": late, "subgoals": subgoals, "ab": learners_ab, "floor": floor, "parts": parts}[args.what](args)
+    result = {"ratio": ratio, "late": late, "subgoals": subgoals, "ab": learners_ab, "floor": floor, "parts": parts,
+              "entry": entry_speed}[args.what](args)
     result.update(threads=args.threads, load_average_start=round(load_before, 2), load_average_end=round(os.getloadavg()[0], 2),
                   command=" ".join(sys.argv))
     (pathlib.Path(args.out) / f"{args.name or args.what}.json").write_text(json.dumps(result, indent=2) + "\n")
