@@ -790,3 +790,71 @@ def test_count_open_doors_tells_opening_a_door_from_turning_to_an_open_one() -> 
     named = make_goal_space("minigrid_count_doors", named_env)
     assert named.count_open_doors and named.keep_doors_open
     assert make_oracle("scripted", named, named_env.observation_space).goal_space.count_open_doors
+
+
+# ---------------------------------------------------------------------- steps as they would have gone carrying the key
+
+
+def _steps_both_ways(seed: int, n: int = 60) -> tuple[list, list]:
+    """Random turns and steps on DoorKey-8x8 (seed ``seed``) twice from the same start: with empty hands, and with the
+    key taken off its cell into the agent's hands. Each: (obs, action, next_obs) triples."""
+    ways = []
+    for carrying in (False, True):
+        env = MiniGridEgocentricObs(gym.make("MiniGrid-DoorKey-8x8-v0"))
+        env.reset(seed=seed)
+        base = env.unwrapped
+        if carrying:
+            x, y = _find(base, "key")
+            base.carrying = base.grid.get(x, y)
+            base.grid.set(x, y, None)
+        obs, rng, steps = env.observation(None), np.random.default_rng(seed), []
+        for _ in range(n):
+            action = int(rng.choice([Actions.left, Actions.right, Actions.forward, Actions.forward]))
+            next_obs, *_ = env.step(action)
+            steps.append((obs, action, next_obs))
+            obs = next_obs
+        ways.append(steps)
+    return ways[0], ways[1]
+
+
+def test_steps_taken_empty_handed_become_the_steps_taken_carrying_the_key() -> None:
+    """The counterfactual of a turn or a step is exactly what the env shows when the agent carries the key, except a
+    step into the key (the key on the floor blocks it), after which the two walks part."""
+    space = MiniGridGoalSpace()
+    compared = 0
+    for seed in range(6):
+        empty, carrying = _steps_both_ways(seed)
+        obs, actions, next_obs = (np.array([step[i] for step in empty]) for i in range(3))
+        usable, obs2, next_obs2, keys = space.carried_counterfactual(CARRYING_KEY_FACING_GOAL, obs, actions, next_obs)
+        for i, ((_, _, real_next), (real_obs, _, carried_next)) in enumerate(zip(empty, carrying)):
+            if not np.array_equal(real_next, next_obs[i]):
+                break
+            if not usable[i]:  # the only step left out of a walk: into the key on the floor
+                assert actions[i] == Actions.forward and obs[i][obs.shape[1] // 2, obs.shape[1] // 2 - 1, 0] == KEY
+                break
+            np.testing.assert_array_equal(obs2[i], real_obs)
+            np.testing.assert_array_equal(next_obs2[i], carried_next)
+            compared += 1
+        assert [space.key(o) for o in next_obs2[usable]] == keys
+        assert all(key[0] == KEY for key in keys)
+    assert compared >= 100
+
+
+def test_the_carried_counterfactual_leaves_out_what_carrying_would_change(doorkey5) -> None:
+    space = MiniGridGoalSpace()
+    obs = doorkey5.observation(None)
+    batch = np.stack([obs] * 7)
+    actions = np.array([Actions.left, Actions.right, Actions.forward, Actions.done, Actions.pickup, Actions.drop,
+                        Actions.toggle])
+    usable, *_ = space.carried_counterfactual(CARRYING_KEY_FACING_LOCKED_DOOR, batch, actions, batch)
+    assert usable.tolist() == [True] * 4 + [False] * 3  # a pick-up, a drop or a toggle would go otherwise
+    assert space.carried_counterfactual(FACING_LOCKED_DOOR, batch, actions, batch) is None  # empty hands: no change
+    assert space.carried_counterfactual(SUCCESS_KEY, batch, actions, batch) is None
+    holding = batch.copy()
+    center = obs.shape[0] // 2
+    holding[:, center, center] = (KEY, 0, 0)  # already carrying something
+    assert not space.carried_counterfactual(CARRYING_KEY_FACING_LOCKED_DOOR, holding, actions, holding)[0].any()
+    two_keys = batch.copy()
+    two_keys[:, 0, 0] = two_keys[:, np.nonzero(obs[..., 0] == KEY)[0][0], np.nonzero(obs[..., 0] == KEY)[1][0]]
+    assert not space.carried_counterfactual(CARRYING_KEY_FACING_LOCKED_DOOR, two_keys, actions, two_keys)[0].any()
+    np.testing.assert_array_equal(batch[0], obs)  # the caller's arrays are left as they were

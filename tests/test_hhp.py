@@ -485,6 +485,22 @@ def test_learners_with_a_view_read_the_cells_around_the_agent_and_save_and_load(
     assert _predictions(loaded, sequence) == _predictions(model, sequence)
 
 
+def test_carry_relabel_reaches_the_learners_replay_and_saves(tmp_path) -> None:
+    """subgoal_learner_kwargs carry_relabel: the stacked learners' replay draws with the goal space's counterfactual;
+    the heads learner (one batch for all) and values outside [0, 1] are refused before training."""
+    model = make_model(subgoal_learner_kwargs=dict(carry_relabel=0.5))
+    replay = model.subpolicies.replay
+    assert replay.carry_relabel == 0.5 and replay.counterfactual == model.goal_space.carried_counterfactual
+    model.learn(600)
+    assert model.subpolicies.n_updates.sum() > 0
+    model.save(tmp_path / "relabelled")
+    assert HhP.load(tmp_path / "relabelled").subpolicies.replay.carry_relabel == 0.5
+    with pytest.raises(ValueError, match="carry_relabel.*stacked"):
+        make_model(subgoal_learner="heads", subgoal_learner_kwargs=dict(carry_relabel=0.5))
+    with pytest.raises(ValueError, match=r"carry_relabel'\] must be in \[0, 1\]"):
+        make_model(subgoal_learner_kwargs=dict(carry_relabel=-0.1))
+
+
 def test_env_forms(trained: HhP) -> None:
     """An env id, a gym env and a DummyVecEnv of one (wrapped) env are accepted; more envs are not."""
     one = DummyVecEnv([lambda: wrap_env(gym.make(EMPTY))])

@@ -531,3 +531,38 @@ def test_the_inner_view_reads_every_cell_but_the_outermost_ring() -> None:
 def test_a_view_that_cannot_be_read_is_refused(space: spaces.Box, view: int, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         StackedDQN(space, ACTIONS, equal_keys, view=view)
+
+
+def test_a_carrying_subgoal_learns_from_empty_handed_steps_as_they_would_have_gone_carrying() -> None:
+    """``carry_relabel``: rows of a carrying sub-goal's batch become the counterfactual's one-step transitions, with
+    eq. 5 / eq. 6 from done(s'', g) of the changed next state; other sub-goals' rows and unusable rows stay as drawn."""
+    gamma, alpha = 0.5, 0.5
+
+    def counterfactual(goal_key, obs, actions, next_obs):
+        if goal_key[0] != "carrying":
+            return None
+        usable = actions.reshape(-1) != 2  # action 2 would go otherwise
+        return usable, obs + 100, next_obs + 100, [("carrying", int(o[0]) - 100) for o in next_obs[usable] + 100]
+
+    replay = SharedReplay(16, OBS, ACTIONS, equal_keys, alpha=alpha, gamma=gamma, n_steps=3, lower_bound=True,
+                          carry_relabel=1.0, counterfactual=counterfactual, seed=0)
+    replay.add_goal(("carrying", 3))  # reached in the counterfactual of the step 2 -> 3
+    replay.add_goal(("empty", 3))
+    fill(replay, [("empty", t + 1) for t in range(6)], acting=[0] * 6, intrinsic=[0.25] * 6)  # states 0..6, actions t % 3
+    batch = replay.sample(np.array([0, 1]), 32)
+    start = batch.observations[..., 0].astype(int) % 100  # the state each drawn row starts in
+    changed = batch.observations[..., 0] >= 100
+    assert not changed[1].any()  # empty hands: drawn as stored
+    np.testing.assert_array_equal(changed[0], start[0] % 3 != 2)  # every usable row of the carrying sub-goal
+    rows = changed[0]
+    np.testing.assert_array_equal(batch.next_observations[0, rows, 0], batch.observations[0, rows, 0] + 1)  # one step
+    reached = start[0, rows] == 2
+    np.testing.assert_allclose(batch.returns[0, rows], np.where(reached, 1.0, 0.0) + alpha * 0.25)  # eq. 5, 6
+    np.testing.assert_array_equal(batch.dones[0, rows], reached)
+    np.testing.assert_allclose(batch.discounts[0, rows], gamma)
+    np.testing.assert_allclose(batch.behaviour_returns[0, rows], batch.returns[0, rows])
+    np.testing.assert_array_equal(batch.behaviour_next_observations[0, rows], batch.next_observations[0, rows])
+    unchanged = ~rows  # rows with action 2: the stored return, never a done of the carrying sub-goal
+    assert unchanged.any() and not batch.dones[0, unchanged].any()
+    with pytest.raises(ValueError, match="carry_relabel"):
+        SharedReplay(16, OBS, ACTIONS, equal_keys, carry_relabel=1.5)

@@ -54,6 +54,14 @@ class GoalSpace(ABC):
         shape), as booleans ``(*leading, n_actions)``; None: every action (the default)."""
         return None
 
+    def carried_counterfactual(self, goal_key: Hashable, obs: np.ndarray, actions: np.ndarray,
+                               next_obs: np.ndarray) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray, list]]:
+        """Transitions ``obs -> next_obs`` (batches ``(m, *obs_shape)``, actions ``(m,)``) made with empty hands, as
+        they would have gone carrying what ``goal_key`` carries, where that changes nothing else: ``(usable (m,),
+        obs', next_obs', keys of the usable rows of next_obs')``; None where the goal space has no such notion or
+        ``goal_key`` carries nothing (the default)."""
+        return None
+
     def present(self, obs: np.ndarray) -> Optional[frozenset]:
         """What is in the state beyond its key, as far as :meth:`choosable` uses it (None: nothing; the
         default). States with equal keys and equal ``present`` get the same mask."""

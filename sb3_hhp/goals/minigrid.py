@@ -87,6 +87,8 @@ def open_doors(obs: np.ndarray) -> Union[int, np.ndarray]:
 
 
 _EMPTY_CELL = (EMPTY, 0, 0)
+#: actions whose outcome does not depend on what the agent carries (MiniGridGoalSpace.carried_counterfactual)
+_CARRY_FREE_ACTIONS = np.array([Actions.left, Actions.right, Actions.forward, Actions.done])
 
 
 def encode_grid(grid: Grid) -> np.ndarray:
@@ -246,6 +248,40 @@ class MiniGridGoalSpace(GoalSpace):
         if self.count_open_doors and front[0] == DOOR and front[2] == OPEN:
             key += (int(count_open()),)
         return key
+
+    def carried_counterfactual(self, goal_key: Hashable, obs: np.ndarray, actions: np.ndarray,
+                               next_obs: np.ndarray) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray, list]]:
+        """Steps taken with empty hands, as they would have gone carrying the object ``goal_key`` carries: that
+        object (the only one of its kind, and colour with ``use_color``, in both states) taken off its cell and put
+        in the agent's. Usable only where carrying it changes nothing else: the agent's hands empty before and after,
+        and a turn, a step or ``done`` (a pick-up, a drop or a toggle would go otherwise), but not a step into the
+        object itself (it blocks the way while on the floor). See :meth:`GoalSpace.carried_counterfactual`."""
+        if goal_key == SUCCESS_KEY or not isinstance(goal_key, tuple) or goal_key[0] in (EMPTY, 0):
+            return None  # the task's own goal or empty hands: nothing to carry
+        kind, colour = goal_key[0], (goal_key[1] if self.use_color else None)
+        obs, next_obs = np.array(obs, copy=True), np.array(next_obs, copy=True)
+        actions = np.asarray(actions).reshape(len(obs))
+        center = obs.shape[-3] // 2
+
+        def the_object(states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            match = states[..., 0] == kind
+            if colour is not None:
+                match &= states[..., 1] == colour
+            match = match.reshape(len(states), -1)
+            return match.sum(axis=1) == 1, match.argmax(axis=1)
+
+        once, cell = the_object(obs)
+        next_once, next_cell = the_object(next_obs)
+        empty_handed = (obs[:, center, center, 0] == EMPTY) & (next_obs[:, center, center, 0] == EMPTY)
+        into_it = (actions == Actions.forward) & (obs[:, center, center - 1, 0] == kind)
+        usable = once & next_once & empty_handed & np.isin(actions, _CARRY_FREE_ACTIONS) & ~into_it
+        rows = np.flatnonzero(usable)
+        for states, cells in ((obs, cell), (next_obs, next_cell)):
+            flat = states.reshape(len(states), -1, states.shape[-1])
+            held = flat[rows, cells[rows]].copy()
+            flat[rows, cells[rows]] = _EMPTY_CELL
+            states[rows, center, center] = held
+        return usable, obs, next_obs, [self.key(state) for state in next_obs[rows]]
 
     def is_milestone(self, key: Hashable, carried_before: Optional[int] = None) -> bool:
         """A key worth pursuing: facing an object one interacts with, the task solved, or a change of what is carried."""

@@ -94,7 +94,7 @@ DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similari
 #: updated in one round (``subgoal_learner="stacked"``; None: all); the learning rounds of one step of the envs in one
 #: call; the cells around the agent the learners read (None: the whole observation)
 SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(exploration_steps=5_000, share_experience=True, train_shared=None,
-                                                max_updates=8, grouped_rounds=False, view=None)
+                                                max_updates=8, grouped_rounds=False, view=None, carry_relabel=0.0)
 #: each ``*_kwargs`` argument grouped over defaults: its defaults and the keys it accepts (None: the defaults' keys)
 GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
     "query_kwargs": (QUERY_DEFAULTS, None),
@@ -166,6 +166,8 @@ def _check_grouped(query: dict[str, Any], predictor: dict[str, Any], learner: di
         raise ValueError(f"query_kwargs['horizon'] must be >= 1 primitive steps (or None), got {query['horizon']}")
     if not 0.0 <= predictor["dropout"] < 1.0:
         raise ValueError(f"predictor_kwargs['dropout'] must be in [0, 1), got {predictor['dropout']}")
+    if not 0.0 <= learner.get("carry_relabel", 0.0) <= 1.0:
+        raise ValueError(f"subgoal_learner_kwargs['carry_relabel'] must be in [0, 1], got {learner['carry_relabel']!r}")
     if learner["train_shared"] and not learner["share_experience"]:
         raise ValueError("subgoal_learner_kwargs: train_shared=True trains sub-goals on shared experience: it needs "
                          "share_experience=True")
@@ -283,7 +285,10 @@ class HhP(BetweenEpisodes, DoubleDQN):
         updates; see the README's Design), ``grouped_rounds`` (the learning rounds due at one step of the envs in
         one call), ``view`` (discrete actions: the learners read only the central ``view`` x ``view`` cells of an
         ``(H, W, C)`` observation, on MiniGrid's egocentric canvas the cells around the agent; ``"inner"``: all but the
-        outermost ring, which on MiniGrid's canvas only ever shows the border wall; None: all of it)
+        outermost ring, which on MiniGrid's canvas only ever shows the border wall; None: all of it), ``carry_relabel``
+        (``subgoal_learner="stacked"``: the share of a sub-goal's batch that, where the sub-goal carries an object,
+        becomes steps taken with empty hands as they would have gone carrying it; the goal space's
+        :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`, MiniGrid's: turns and steps; 0: none)
     :param subpolicy_kwargs: arguments of the sub-goal learners, in SB3 DQN's names (discrete actions: over
         :data:`~sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWARGS`; ``PAPER_SUBPOLICY_KWARGS`` is the paper's learner;
         ``buffer_size`` is the shared replay's, in primitive transitions) or of each sub-goal's SB3 DDPG (continuous)
@@ -537,9 +542,12 @@ class HhP(BetweenEpisodes, DoubleDQN):
             self.subpolicies = SUBGOAL_LEARNERS[self.subgoal_learner](
                 obs_space, self.primitive_action_space, self.goal_space.achieved, policy=self.subpolicy_policy,
                 subpolicy_kwargs=self.subpolicy_kwargs, alpha=alpha, n_envs=self.n_envs, device=device, seed=self.seed,
-                action_mask=self.goal_space.action_mask, **learner,
+                action_mask=self.goal_space.action_mask, counterfactual=self.goal_space.carried_counterfactual, **learner,
             )
         else:
+            if learner.get("carry_relabel"):
+                raise ValueError("subgoal_learner_kwargs['carry_relabel'] applies to the learners of discrete actions: "
+                                 "leave it out for this env's DDPG sub-goal learners")
             if learner.get("view") is not None:  # (models saved before the option have no key)
                 raise ValueError("subgoal_learner_kwargs['view'] applies to the learners of discrete actions; this env's "
                                  "sub-goal learners are DDPG models that read the whole observation: leave view out")

@@ -165,6 +165,9 @@ class StackedDQN:
         (on MiniGrid's canvas it only ever shows the grid's border wall, so the learners lose nothing and their first
         layer reads a quarter fewer inputs); the replay keeps whole observations (the goal space reads them). None: the
         whole observation
+    :param carry_relabel: the share of a drawn batch, for a sub-goal that carries an object, replaced where possible
+        by steps taken with empty hands as they would have gone carrying it (``counterfactual``, the goal space's
+        :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`), as one-step returns; 0: none
     """
 
     #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
@@ -188,9 +191,13 @@ class StackedDQN:
         grouped_rounds: bool = False,
         action_mask: Optional[Callable[[np.ndarray], Optional[np.ndarray]]] = None,
         view: Optional[int] = None,
+        carry_relabel: float = 0.0,
+        counterfactual: Optional[Callable] = None,
     ) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
+        if not 0.0 <= carry_relabel <= 1.0:
+            raise ValueError(f"carry_relabel (subgoal_learner_kwargs) must be in [0, 1], got {carry_relabel!r}")
         if max_updates is not None and (isinstance(max_updates, bool) or int(max_updates) != max_updates
                                         or max_updates < 1):
             raise ValueError(f"max_updates (subgoal_learner_kwargs) must be an integer >= 1 or None, got {max_updates!r}")
@@ -233,7 +240,7 @@ class StackedDQN:
             achieved=achieved, alpha=alpha, gamma=self.gamma, n_steps=int(kw["n_steps"]), lower_bound=lower_bound,
             share_experience=share_experience, shared_priorities=self._shared_priorities,
             priority_alpha=kw["prioritized_replay_alpha"], priority_beta=kw["prioritized_replay_beta"],
-            priority_eps=kw["prioritized_replay_eps"], seed=seed,
+            priority_eps=kw["prioritized_replay_eps"], carry_relabel=carry_relabel, counterfactual=counterfactual, seed=seed,
         )
         self.replay = self._make_replay(n_envs)
         # SB3's CNN reads channel-first images: the env's channel-last frames are turned when they reach a network
@@ -803,6 +810,9 @@ class SharedHeadsDQN(StackedDQN):
     _shared_priorities = True
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
+        if kwargs.get("carry_relabel"):
+            raise ValueError("carry_relabel (subgoal_learner_kwargs) changes each sub-goal's own batch: it needs "
+                             "subgoal_learner='stacked' (the heads learner draws one batch for all)")
         super().__init__(*args, **kwargs)
         policy = self._make_policy()
         policy_kwargs = {k: v for k, v in dict(self.kwargs["policy_kwargs"] or {}).items() if k != "optimizer_kwargs"}

@@ -155,8 +155,15 @@ class SharedReplay:
     :param shared_priorities: one sum tree for every sub-goal (a transition's priority is set by whoever draws it,
         :class:`~sb3_hhp.hierarchy.learners.SharedHeadsDQN`), instead of one tree per sub-goal
     :param priority_alpha, priority_beta, priority_eps: prioritized replay's alpha, beta and epsilon
+    :param carry_relabel: the share of each drawn batch, for a sub-goal that carries an object, replaced where possible
+        by steps taken with empty hands as they would have gone carrying it (``counterfactual``); one-step returns
+    :param counterfactual: the goal space's :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`
     :param seed: seed of the draws
     """
+
+    #: replays pickled before the carried counterfactual existed draw without it
+    carry_relabel = 0.0
+    counterfactual: Optional[Callable] = None
 
     def __init__(
         self,
@@ -174,8 +181,12 @@ class SharedReplay:
         priority_alpha: float = 0.6,
         priority_beta: float = 0.4,
         priority_eps: float = 1e-6,
+        carry_relabel: float = 0.0,
+        counterfactual: Optional[Callable] = None,
         seed: Optional[int] = None,
     ) -> None:
+        if not 0.0 <= carry_relabel <= 1.0:
+            raise ValueError(f"carry_relabel must be in [0, 1], got {carry_relabel}")
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
         if n_envs < 1:
@@ -191,6 +202,7 @@ class SharedReplay:
         self.lower_bound, self.share_experience = bool(lower_bound), bool(share_experience)
         self.priority_alpha, self.priority_beta, self.priority_eps = priority_alpha, priority_beta, priority_eps
         self._achieved = achieved
+        self.carry_relabel, self.counterfactual = float(carry_relabel), counterfactual
         shape = (self.capacity, self.n_envs)
         self.observations = np.zeros((*shape, *observation_space.shape), dtype=observation_space.dtype)
         self.next_observations = np.zeros_like(self.observations)
@@ -289,11 +301,43 @@ class SharedReplay:
             b_returns, b_last, b_discounts, b_dones = behaviour
             extra = dict(behaviour_returns=b_returns, behaviour_next_observations=self.next_observations[b_last, cols],
                          behaviour_dones=b_dones, behaviour_discounts=b_discounts)
-        return GoalBatch(
+        batch = GoalBatch(
             goals=goals, observations=self.observations[rows, cols], actions=self.actions[rows, cols], returns=returns,
             next_observations=self.next_observations[last, cols], dones=dones, discounts=discounts,
             weights=weights, leaves=leaves, **extra,
         )
+        if self.carry_relabel > 0 and self.counterfactual is not None:
+            self._relabel_carried(batch, rows, cols)
+        return batch
+
+    def _relabel_carried(self, batch: GoalBatch, rows: np.ndarray, cols: np.ndarray) -> None:
+        """For each sub-goal of ``batch`` that carries an object, a ``carry_relabel`` share of its rows (in place):
+        the steps taken with empty hands among them as they would have gone carrying it (the goal space's
+        ``counterfactual``), each a one-step return of eq. 6 from ``done(s'', g)`` of the changed state ``s''``, its
+        lower bound the same return."""
+        lower_bound = batch.behaviour_returns is not None
+        for t, goal in enumerate(batch.goals):
+            chosen = np.flatnonzero(self._rng.random(len(rows[t])) < self.carry_relabel)
+            if not len(chosen):
+                continue
+            r, c = rows[t, chosen], cols[t, chosen]
+            changed = self.counterfactual(self.goal_keys[goal], self.observations[r, c], self.actions[r, c],
+                                          self.next_observations[r, c])
+            if changed is None:
+                continue
+            usable, obs, next_obs, next_keys = changed
+            if not usable.any():
+                continue
+            at = chosen[usable]
+            r, c = r[usable], c[usable]
+            done = self.done(np.array([self.key_id(key) for key in next_keys]), int(goal))
+            terminal = done | self.terminated[r, c]
+            reward = subpolicy_reward(pseudo_reward(done, terminal), self.intrinsic[r, c], self.alpha)  # eq. 5, 6
+            batch.observations[t, at], batch.next_observations[t, at] = obs[usable], next_obs[usable]
+            batch.returns[t, at], batch.dones[t, at], batch.discounts[t, at] = reward, terminal, self.gamma
+            if lower_bound:
+                batch.behaviour_returns[t, at], batch.behaviour_dones[t, at] = reward, terminal
+                batch.behaviour_next_observations[t, at], batch.behaviour_discounts[t, at] = next_obs[usable], self.gamma
 
     def importance_weights(self, probabilities: np.ndarray) -> np.ndarray:
         """``w = (N * P(i))^-beta``, normalised by the largest weight of each row of draws."""
