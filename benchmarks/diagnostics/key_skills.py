@@ -101,7 +101,7 @@ def steps_to_locked_door_from(env: gym.Env, seed: int, heading: int) -> Optional
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", help="a run's log folder (its newest checkpoint is loaded)")
+    parser.add_argument("run", help="a run's log folder (its newest checkpoint is loaded), or a model .zip")
     parser.add_argument("--env", default="MiniGrid-KeyCorridorS4R3-v0")
     parser.add_argument("--layouts", type=int, default=40, help="fresh layouts (seeds 1000, 1001, ...)")
     parser.add_argument("--steps", type=int, default=50, help="primitive steps a learner gets (a sub-goal's give-up)")
@@ -110,8 +110,15 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(1)
     register_minigrid_tasks()
-    path, timesteps, replay_path = newest_checkpoint(args.run)
-    model = HhP.load(path, device="cpu")
+    if args.run.endswith(".zip"):  # a saved model: no replay beside it
+        if args.replay:
+            raise SystemExit("--replay reads a checkpoint's replay: give the run's log folder, not a model .zip")
+        path, replay_path = args.run, None
+        model = HhP.load(path, device="cpu")
+        timesteps = model.num_timesteps
+    else:
+        path, timesteps, replay_path = newest_checkpoint(args.run)
+        model = HhP.load(path, device="cpu")
     learners, space = model.subpolicies, model.goal_space
     names = [space.describe(goal.key) for goal in model.subgoals]
     result = {"run": args.run, "checkpoint_steps": timesteps, "env": args.env, "layouts": args.layouts,
