@@ -346,18 +346,13 @@ def test_report_command_line(tmp_path, capsys):
         report.main([str(tmp_path / "nothing.csv")])
 
 
-def test_the_speed_script_times_an_entry_as_it_trains(tmp_path: Path) -> None:
+def test_the_speed_script_times_an_entry_as_it_trains() -> None:
     """``speed.py entry`` builds HhP from the env's YAML entry (its policy, wrapper and n_envs) and times a window."""
-    import json
-    import subprocess
-    import sys
+    import argparse
 
-    root = Path(__file__).resolve().parent.parent
-    done = subprocess.run(
-        [sys.executable, str(root / "benchmarks" / "speed.py"), "entry", "--env", "MiniGrid-Empty-5x5-v0", "--start", "100",
-         "--stop", "300", "--out", str(tmp_path), "--name", "entry", "--hhp-kwargs", '{"device": "cpu"}'],
-        cwd=root, capture_output=True, text=True, timeout=240)
-    assert done.returncode == 0, done.stderr[-2000:]
-    result = json.loads((tmp_path / "entry.json").read_text())
+    from benchmarks import speed
+
+    result = speed.entry_speed(argparse.Namespace(env="MiniGrid-Empty-5x5-v0", hhp_kwargs='{"device": "cpu"}', seed=0,
+                                                  start=100, stop=300, n_envs=None))
     assert result["n_envs"] == 1 and result["policy"] == "MlpPolicy" and result["device"] == "cpu"  # the entry's
     assert result["window"] == [100, 300] and result["hhp_fps"] > 0 and result["num_subgoals"] >= 1
