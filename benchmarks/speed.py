@@ -53,7 +53,6 @@ average at its start and end).
 
 import argparse
 import cProfile
-import importlib
 import json
 import os
 import pathlib
@@ -75,18 +74,25 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
 from sb3_hhp import HhP
+from sb3_hhp.extras import import_extra
 from sb3_hhp.goals import wrap_env
 from sb3_hhp.hhp.hhp import SUBGOAL_LEARNER_DEFAULTS
 from sb3_hhp.hierarchy.learners import StackedDQN, default_subpolicy_kwargs
 from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry
 
 
+def yaml_entry(env_id: str) -> tuple[str, dict[str, Any]]:
+    """The name and the whole entry of ``env_id`` in ``hyperparams/hhp.yml``."""
+    table = yaml.safe_load(default_config_path().read_text())
+    name = select_entry(table, env_id)
+    return name, table[name]
+
+
 def entry_kwargs(env_id: str, overrides: str = "{}") -> tuple[str, dict[str, Any]]:
     """The YAML entry's HhP keyword arguments (RL Zoo's own keys left out), updated with ``overrides`` (JSON), and
     the entry's name."""
-    table = yaml.safe_load(default_config_path().read_text())
-    name = select_entry(table, env_id)
-    kwargs = {key: value for key, value in table[name].items() if key not in ZOO_KEYS}
+    name, entry = yaml_entry(env_id)
+    kwargs = {key: value for key, value in entry.items() if key not in ZOO_KEYS}
     kwargs.update(json.loads(overrides))
     return name, kwargs
 
@@ -157,17 +163,13 @@ def flat_dqn(args: argparse.Namespace, kwargs: dict[str, Any]) -> tuple[DQN, dic
 def entry_speed(args: argparse.Namespace) -> dict[str, Any]:
     """HhP as the env's YAML entry trains it (its policy, ``env_wrapper`` and ``n_envs`` unless ``--n-envs`` says
     otherwise), timed over steps ``--start`` to ``--stop``, with ``--hhp-kwargs`` over the entry's (e.g. the device)."""
-    if args.env.startswith("ALE/"):
-        import ale_py
+    from rl_zoo3.utils import get_wrapper_class
 
-        gym.register_envs(ale_py)
-    table = yaml.safe_load(default_config_path().read_text())
-    entry = table[select_entry(table, args.env)]
+    if args.env.startswith("ALE/"):
+        gym.register_envs(import_extra("ale_py"))
+    _, entry = yaml_entry(args.env)
     _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
-    wrapper = entry.get("env_wrapper")
-    if wrapper:
-        module, _, name = wrapper.rpartition(".")
-        wrapper = getattr(importlib.import_module(module), name)
+    wrapper = get_wrapper_class(entry)  # the entry's env_wrapper, as RL Zoo reads it
     n_envs = args.n_envs or entry.get("n_envs", 1)
     envs = make_vec_env(args.env, n_envs=n_envs, wrapper_class=wrapper, seed=args.seed)
     folder = pathlib.Path(tempfile.mkdtemp(prefix="hhp_speed_"))

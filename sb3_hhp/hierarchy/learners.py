@@ -196,8 +196,6 @@ class StackedDQN:
     ) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
-        if not 0.0 <= carry_relabel <= 1.0:
-            raise ValueError(f"carry_relabel (subgoal_learner_kwargs) must be in [0, 1], got {carry_relabel!r}")
         if max_updates is not None and (isinstance(max_updates, bool) or int(max_updates) != max_updates
                                         or max_updates < 1):
             raise ValueError(f"max_updates (subgoal_learner_kwargs) must be an integer >= 1 or None, got {max_updates!r}")
