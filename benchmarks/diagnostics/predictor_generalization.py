@@ -25,7 +25,6 @@ from gymnasium import spaces
 from sb3_hhp.goals import MiniGridGoalSpace, wrap_env
 from sb3_hhp.goals.minigrid import egocentric_grid
 from sb3_hhp.oracles import MiniGridScriptedOracle, Query
-from sb3_hhp.oracles.scripted import plan_keys
 from sb3_hhp.preferences.predictor import PreferencePredictor
 
 
@@ -75,9 +74,10 @@ def main() -> None:
 
     def best(obs: np.ndarray) -> tuple:
         info = space.privileged(env)
-        plan = plan_keys(info, space) or []
+        steps = oracle.plan(info) or []
         carried = space.key(obs)[0]
-        milestones = [k for k in plan if k in keys and space.is_milestone(k, carried) and space.choosable(space.key(obs), k)]
+        milestones = [k for k, acts in steps if k in keys and oracle.milestone(k, acts, carried)
+                      and space.choosable(space.key(obs), k)]  # the oracle's own rule: where its plan acts
         return info, (keys.index(milestones[0]) if milestones else None)
 
     test = []
