@@ -47,6 +47,15 @@ envs: Atari's CnnPolicy on 84x84 frames too), timed over a window; ``--hhp-kwarg
 
     python benchmarks/speed.py entry --env ALE/Pong-v5 --start 1000 --stop 2000 --hhp-kwargs '{"device": "cuda"}'
 
+``call``: one grouped call of the sub-goal learners' update (``train_rounds``: the two rounds due at a step of the
+envs, each of the entry's ``max_updates`` learners) from one saved state of a run (as ``ab``), repeated, its time split
+with torch's profiler into the batched matrix products (``baddbmm``, ``bmm``: the arithmetic), torch's other
+operators (gathers, concatenations, the loss, Adam, the clip, ...) and what runs outside torch (drawing and
+relabelling the batches, the priority update, Python; the profiled calls' wall time less torch's share); the call's
+time unprofiled beside it::
+
+    python benchmarks/speed.py call --env MiniGrid-DoorKey-8x8-v0 --n-envs 8 --seed 1 --start 25000
+
 Results are JSON files under ``--out``; say the machine's load next to the figures (the script records the load
 average at its start and end).
 """
@@ -294,6 +303,37 @@ def parts(args: argparse.Namespace) -> dict[str, Any]:
                 dqn_learning=learning)
 
 
+def learner_call(args: argparse.Namespace) -> dict[str, Any]:
+    """One grouped call of the sub-goal learners from a saved state, timed and split by torch's profiler."""
+    from torch.profiler import ProfilerActivity, profile
+
+    _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
+    hhp, folder = snapshot(args, kwargs, "hhp_call_")
+    learners = from_snapshot(args, folder, 0).subpolicies
+    goals = np.arange(min(len(learners), learners.max_updates or len(learners)))
+    plan = [goals] * max(1, args.n_envs // learners.train_freq)  # the rounds due at one step of the envs
+
+    def call() -> None:
+        learners.train_rounds(plan, first_round=learners.rounds + 1)
+
+    calls = args.repeats * 25
+    seconds = median_seconds(call, calls)  # as a run pays it
+    with profile(activities=[ProfilerActivity.CPU]) as prof:  # the split, from a profiled run of as many calls
+        begin = time.perf_counter()
+        for _ in range(calls):
+            call()
+        profiled_ms = 1000 * (time.perf_counter() - begin) / calls
+    events = prof.key_averages()
+    torch_ms = sum(event.self_cpu_time_total for event in events) / 1000 / calls
+    products_ms = sum(event.self_cpu_time_total for event in events if event.key in ("aten::baddbmm", "aten::bmm")) / 1000 / calls
+    top = sorted(events, key=lambda event: -event.self_cpu_time_total)[:12]
+    return dict(env=args.env, seed=args.seed, n_envs=args.n_envs, snapshot_steps=hhp.num_timesteps,
+                snapshot_subgoals=len(hhp.subgoals), learners_per_round=len(goals), rounds=len(plan),
+                call_ms=round(1000 * seconds, 3), profiled_call_ms=round(profiled_ms, 3), products_ms=round(products_ms, 3),
+                other_torch_ms=round(torch_ms - products_ms, 3), outside_torch_ms=round(profiled_ms - torch_ms, 3),
+                top_torch_ops_ms={event.key: round(event.self_cpu_time_total / 1000 / calls, 3) for event in top})
+
+
 def distinct_states(env_id: str, n: int, seed: int) -> list[np.ndarray]:
     """``n`` observations from random play, of as many distinct sub-goal keys as the env shows (then repeated)."""
     from sb3_hhp.goals import make_goal_space
@@ -394,7 +434,7 @@ def floor(args: argparse.Namespace) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["ratio", "late", "subgoals", "ab", "one", "floor", "parts", "entry"])
+    parser.add_argument("what", choices=["ratio", "late", "subgoals", "ab", "one", "floor", "parts", "entry", "call"])
     parser.add_argument("--env", default="MiniGrid-DoorKey-8x8-v0")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--start", type=int, default=20_000, help="primitive steps before the timed window")
@@ -409,7 +449,7 @@ def main() -> None:
     parser.add_argument("--name", default=None, help="the result file's name (default: the measurement's)")
     parser.add_argument("--learners-a", default="{}", help="ab: JSON, sub-goal learner attributes of A")
     parser.add_argument("--learners-b", default='{"grouped_rounds": true}', help="ab: JSON, the same for B")
-    parser.add_argument("--repeats", type=int, default=4, help="ab, parts: pairs")
+    parser.add_argument("--repeats", type=int, default=4, help="ab, parts: pairs; call: 25 calls a repeat")
     parser.add_argument("--out", default="benchmarks/results/speed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (HhP and the flat DQN alike)")
     args = parser.parse_args()
@@ -422,7 +462,7 @@ def main() -> None:
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()[0]
     result = {"ratio": ratio, "late": late, "subgoals": subgoals, "ab": learners_ab, "floor": floor, "parts": parts,
-              "entry": entry_speed}[args.what](args)
+              "entry": entry_speed, "call": learner_call}[args.what](args)
     result.update(threads=args.threads, load_average_start=round(load_before, 2), load_average_end=round(os.getloadavg()[0], 2),
                   command=" ".join(sys.argv))
     (pathlib.Path(args.out) / f"{args.name or args.what}.json").write_text(json.dumps(result, indent=2) + "\n")

@@ -356,3 +356,20 @@ def test_the_speed_script_times_an_entry_as_it_trains() -> None:
                                                   start=100, stop=300, n_envs=None))
     assert result["n_envs"] == 1 and result["policy"] == "MlpPolicy" and result["device"] == "cpu"  # the entry's
     assert result["window"] == [100, 300] and result["hhp_fps"] > 0 and result["num_subgoals"] >= 1
+
+
+def test_the_speed_script_splits_a_learner_call() -> None:
+    """``speed.py call`` times the sub-goal learners' grouped update from a saved state and splits it into the batched
+    products, torch's other operators and what runs outside torch."""
+    import argparse
+
+    from benchmarks import speed
+
+    result = speed.learner_call(argparse.Namespace(env="MiniGrid-DoorKey-5x5-v0", hhp_kwargs='{"device": "cpu"}', seed=0,
+                                                   start=800, n_envs=8, repeats=1))
+    assert result["rounds"] == 2 and 1 <= result["learners_per_round"] <= result["snapshot_subgoals"]
+    assert result["products_ms"] > 0 and result["other_torch_ms"] > 0
+    assert "aten::baddbmm" in result["top_torch_ops_ms"]
+    # the parts are measured apart (torch's own times, and the profiled calls' wall time less them)
+    assert result["outside_torch_ms"] > 0 and result["products_ms"] < result["profiled_call_ms"]
+    assert result["top_torch_ops_ms"]["aten::baddbmm"] <= result["products_ms"]
