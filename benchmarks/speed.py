@@ -84,7 +84,7 @@ from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
 from sb3_hhp import HhP
 from sb3_hhp.extras import import_extra
-from sb3_hhp.goals import wrap_env
+from sb3_hhp.goals import register_minigrid_tasks, wrap_env
 from sb3_hhp.hhp.hhp import SUBGOAL_LEARNER_DEFAULTS
 from sb3_hhp.hierarchy.learners import StackedDQN, default_subpolicy_kwargs
 from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry
@@ -454,6 +454,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (HhP and the flat DQN alike)")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
+    register_minigrid_tasks()  # the paper's MultiRoom-N12-S10, as sb3_hhp.train registers it
     if args.what != "entry" and args.n_envs is None:
         args.n_envs = 1
     if args.what == "one":
