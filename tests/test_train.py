@@ -276,3 +276,6 @@ def test_the_papers_four_minigrid_tasks_have_entries_that_build(env_id: str) -> 
     if env_id == "MiniGrid-MultiRoom-N12-S10-v0":
         base = model.env.envs[0].unwrapped
         assert (base.minNumRooms, base.maxNumRooms, base.maxRoomSize, base.width) == (12, 12, 10, 25)
+        # the settings of its development run: open doors stay open for the learners, the learners read 15x15 cells
+        assert model.goal_space.keep_doors_open and model.success_bonus == "best"
+        assert model.subpolicies.view == 15
