@@ -362,7 +362,8 @@ def latest_checkpoint(log_folder: Path) -> Optional[Path]:
     """The run folder holding the latest checkpoint an unfinished HhP run left (``sb3_hhp.train --checkpoint-freq``),
     None when there is none."""
     best: Optional[tuple[int, Path]] = None
-    for pointer in Path(log_folder).glob("hhp/*/checkpoint.json"):
+    own = Path(log_folder) / "checkpoint.json"  # one run folder, or a training command's -f folder (runs in hhp/*)
+    for pointer in [own] if own.is_file() else Path(log_folder).glob("hhp/*/checkpoint.json"):
         try:
             steps = int(json.loads(pointer.read_text())["timesteps"])
         except (ValueError, KeyError, TypeError):

@@ -101,9 +101,12 @@ def entry_kwargs(env_id: str, overrides: str = "{}") -> tuple[str, dict[str, Any
     """The YAML entry's HhP keyword arguments (RL Zoo's own keys left out), updated with ``overrides`` (JSON), and
     the entry's name."""
     name, entry = yaml_entry(env_id)
-    kwargs = {key: value for key, value in entry.items() if key not in ZOO_KEYS}
-    kwargs.update(json.loads(overrides))
-    return name, kwargs
+    return name, hhp_kwargs(entry, overrides)
+
+
+def hhp_kwargs(entry: dict[str, Any], overrides: str = "{}") -> dict[str, Any]:
+    """A YAML entry's HhP keyword arguments (RL Zoo's own keys left out), updated with ``overrides`` (JSON)."""
+    return {**{key: value for key, value in entry.items() if key not in ZOO_KEYS}, **json.loads(overrides)}
 
 
 def as_trained(kwargs: dict[str, Any], folder: pathlib.Path) -> dict[str, Any]:
@@ -177,7 +180,7 @@ def entry_speed(args: argparse.Namespace) -> dict[str, Any]:
     if args.env.startswith("ALE/"):
         gym.register_envs(import_extra("ale_py"))
     _, entry = yaml_entry(args.env)
-    _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
+    kwargs = hhp_kwargs(entry, args.hhp_kwargs)  # the YAML read once
     wrapper = get_wrapper_class(entry)  # the entry's env_wrapper, as RL Zoo reads it
     n_envs = args.n_envs or entry.get("n_envs", 1)
     envs = make_vec_env(args.env, n_envs=n_envs, wrapper_class=wrapper, seed=args.seed)
@@ -308,8 +311,8 @@ def learner_call(args: argparse.Namespace) -> dict[str, Any]:
     from torch.profiler import ProfilerActivity, profile
 
     _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
-    hhp, folder = snapshot(args, kwargs, "hhp_call_")
-    learners = from_snapshot(args, folder, 0).subpolicies
+    hhp, _ = snapshot(args, kwargs, "hhp_call_")
+    learners = hhp.subpolicies  # the state is timed once: no need to load the saved copy back
     goals = np.arange(min(len(learners), learners.max_updates or len(learners)))
     plan = [goals] * max(1, args.n_envs // learners.train_freq)  # the rounds due at one step of the envs
 

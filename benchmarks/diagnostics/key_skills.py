@@ -41,8 +41,7 @@ from sb3_hhp.train import read_checkpoint  # noqa: E402
 
 def newest_checkpoint(run: str) -> tuple[str, int, str]:
     """The model, step count and replay of a run's newest checkpoint (the runner's and the training command's readers)."""
-    run_folder = pathlib.Path(run)  # a training command's -f folder, or one run folder of it (holding checkpoint.json)
-    folder = run_folder if (run_folder / "checkpoint.json").is_file() else latest_checkpoint(run_folder)
+    folder = latest_checkpoint(pathlib.Path(run))
     if folder is None:
         raise SystemExit(f"{run} holds no checkpoint.json (runs write them with --checkpoint-freq)")
     checkpoint = read_checkpoint(str(folder))
