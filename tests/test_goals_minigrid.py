@@ -485,6 +485,8 @@ def test_within_reach_is_a_flood_fill_through_passable_cells() -> None:
     wall, key_, ball, door, goal = (OBJECT_TO_IDX[name] for name in ("wall", "key", "ball", "door", "goal"))
     empty = OBJECT_TO_IDX["empty"]
     locked, opened = STATE_TO_IDX["locked"], STATE_TO_IDX["open"]
+    seen = []  # each state below, with the set it must give
+    space.present = lambda obs: seen.append((obs.copy(), MiniGridGoalSpace.present(space, obs))) or seen[-1][1]
     obs = np.zeros((7, 7, 3), dtype=np.uint8)  # the agent at (3, 3)
     obs[1:6, 1:6, 0] = empty
     obs[:, 0, 0] = obs[:, 6, 0] = obs[0, :, 0] = obs[6, :, 0] = wall
@@ -508,6 +510,12 @@ def test_within_reach_is_a_flood_fill_through_passable_cells() -> None:
     assert space.choosable((empty, key_, 0), SUCCESS_KEY, present)
     assert not space.choosable((key_, ball, 0), SUCCESS_KEY, present)  # the key must be put down first
     assert not space.choosable((empty, door, opened), SUCCESS_KEY, present)
+    # the states in one batch (a meta-controller's update masks a batch of closing states): each its own set, the
+    # regions of one grid never joined to another's (the open door's state, next to the locked door's, in either order)
+    states, sets = np.stack([obs for obs, _ in seen]), [within for _, within in seen]
+    assert len(states) == len(set(sets)) == 5
+    assert space.present_batch(states) == sets
+    assert space.present_batch(states[::-1]) == sets[::-1]
     assert space.choosable((empty, empty, 0), SUCCESS_KEY)  # without present: always
 
 

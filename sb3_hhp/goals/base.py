@@ -67,6 +67,10 @@ class GoalSpace(ABC):
         default). States with equal keys and equal ``present`` get the same mask."""
         return None
 
+    def present_batch(self, observations: np.ndarray) -> list[Optional[frozenset]]:
+        """:meth:`present` of each observation of a batch ``(N, *obs_shape)`` (a goal space may do them at once)."""
+        return [self.present(obs) for obs in observations]
+
     def features(self, obs: np.ndarray) -> Optional[np.ndarray]:
         """A compact description of a batch of observations ``(B, *obs_shape)`` as float vectors ``(B, F)``
         that recurs across layouts, for the preference predictor (``HhP(predictor_input="auto")``);

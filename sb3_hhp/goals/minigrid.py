@@ -87,6 +87,10 @@ def open_doors(obs: np.ndarray) -> Union[int, np.ndarray]:
 
 
 _EMPTY_CELL = (EMPTY, 0, 0)
+#: lookups by object id (any byte) of PASSABLE and INTERACTIVE
+_PASSABLE_TABLE, _INTERACTIVE_TABLE = (np.isin(np.arange(256), list(ids)) for ids in (PASSABLE, INTERACTIVE))
+#: 4-connected neighbours within each grid of a batch (N, S, S), never across grids
+_GRID_CROSS = np.stack([np.zeros((3, 3), dtype=bool), ndimage.generate_binary_structure(2, 1), np.zeros((3, 3), dtype=bool)])
 #: actions whose outcome does not depend on what the agent carries (MiniGridGoalSpace.carried_counterfactual)
 _CARRY_FREE_ACTIONS = np.array([Actions.left, Actions.right, Actions.forward, Actions.done])
 
@@ -296,25 +300,48 @@ class MiniGridGoalSpace(GoalSpace):
         state) with ``use_color``; the agent's cell (the carried object) is left out. When the grid has a goal
         square and none is within reach, the set also holds :data:`GOAL_OUT_OF_REACH`; when it has none,
         :data:`NO_GOAL_SQUARE`."""
-        obs = np.asarray(obs)
-        center = obs.shape[0] // 2
+        return self.present_batch(np.asarray(obs)[None])[0]
+
+    def present_batch(self, observations: np.ndarray) -> list[frozenset]:
+        """:meth:`present` of each observation of a batch ``(N, S, S, 3)``, the regions of all of them labelled
+        in one pass (a meta-controller's update masks the choices of a whole batch of closing states)."""
+        obs = np.asarray(observations)
+        n, center = len(obs), obs.shape[1] // 2
         objects, states = obs[..., 0], obs[..., 2]
-        passable = np.isin(objects, list(PASSABLE)) | ((objects == DOOR) & (states == OPEN))
-        passable[center, center] = True
-        regions, _ = ndimage.label(passable)  # 4-connected
-        reached = regions == regions[center, center]
-        near = ndimage.binary_dilation(reached)  # a cell next to a reached one can be faced
-        near[center, center] = False
-        interactive = np.isin(objects, list(INTERACTIVE))
-        columns = (0, 1, 2) if self.use_color else (0, 2)
-        cells = obs[near & interactive][:, columns]
-        within = frozenset(map(tuple, np.unique(cells, axis=0).tolist()))
-        if not (objects == GOAL).any():
-            within |= {NO_GOAL_SQUARE}
-        elif not (cells[:, 0] == GOAL).any():
-            within |= {GOAL_OUT_OF_REACH}
-        if self.count_open_doors:
-            within |= {(OPEN_DOORS, open_doors(obs))}
+        passable = _PASSABLE_TABLE[objects] | ((objects == DOOR) & (states == OPEN))
+        passable[:, center, center] = True
+        regions, _ = ndimage.label(passable, structure=_GRID_CROSS)
+        reached = regions == regions[:, center, center][:, None, None]
+        near = reached.copy()  # and the cells next to a reached one (4-connected), which can be faced
+        near[:, 1:] |= reached[:, :-1]
+        near[:, :-1] |= reached[:, 1:]
+        near[:, :, 1:] |= reached[:, :, :-1]
+        near[:, :, :-1] |= reached[:, :, 1:]
+        near[:, center, center] = False
+        rows, ys, xs = np.nonzero(near & _INTERACTIVE_TABLE[objects])
+        columns = [0, 1, 2] if self.use_color else [0, 2]
+        cells = obs[rows, ys, xs][:, columns].astype(np.int64)
+        codes = rows.astype(np.int64)  # each cell as one number: (row, object[, colour], state), a byte each
+        for column in range(len(columns)):
+            codes = codes << 8 | cells[:, column]
+        found: list[list[tuple]] = [[] for _ in range(n)]
+        shifts = [8 * (len(columns) - 1 - column) for column in range(len(columns))]
+        for code in np.unique(codes).tolist():
+            found[code >> 8 * len(columns)].append(tuple(code >> shift & 255 for shift in shifts))
+        has_goal = (objects == GOAL).any(axis=(1, 2))
+        goal_within = np.zeros(n, dtype=bool)
+        goal_within[rows[cells[:, 0] == GOAL]] = True
+        doors = open_doors(obs) if self.count_open_doors else None
+        within = []
+        for i in range(n):
+            items = set(found[i])
+            if not has_goal[i]:
+                items.add(NO_GOAL_SQUARE)
+            elif not goal_within[i]:
+                items.add(GOAL_OUT_OF_REACH)
+            if doors is not None:
+                items.add((OPEN_DOORS, int(doors[i])))
+            within.append(frozenset(items))
         return within
 
     def choosable(self, key: Hashable, goal_key: Hashable, present: Optional[frozenset] = None) -> bool:

@@ -8,6 +8,7 @@ confident choices (lines 24-27), discover sub-goals (line 29) and update the cur
 35); then ``train`` runs N_opt meta-controller updates (lines 30-34) whose reward is eq. 3.
 """
 
+import hashlib
 import inspect
 import io
 import pathlib
@@ -573,7 +574,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             self.consumed_query_ids: set[str] = set()
         self.pending_queries: dict[str, Any] = {}
         self._mask_cache: dict[Any, np.ndarray] = {}  # (state key, present) -> choosable sub-goals, emptied when G changes
-        self._present_cache: dict[bytes, tuple] = {}  # observation bytes -> (key, present)
+        self._present_cache: dict[bytes, tuple] = {}  # observation digest -> (key, present)
         self.recent_choices: deque = deque(maxlen=1_000)
         self._unscored: list = []  # choices stored in R_H whose preference bonus is not yet in sigma(R_p)
         self.last_predictor_stats: dict[str, float] = {}
@@ -642,14 +643,16 @@ class HhP(BetweenEpisodes, DoubleDQN):
         batch = self._env_layout(np.asarray(observations)).astype(self.primitive_observation_space.dtype, copy=False)
         goal_keys = [goal.key for goal in self.subgoals]
         rows = np.empty((len(batch), len(valid)), dtype=bool)
-        for i, obs in enumerate(batch):
-            raw = obs.tobytes()
-            described = self._present_cache.get(raw)
-            if described is None:  # key and present of a state, reused whenever the same observation recurs
-                if len(self._present_cache) >= 100_000:
-                    self._present_cache.clear()
-                described = self._present_cache[raw] = (self.goal_space.key(obs), self.goal_space.present(obs))
-            key, present = described
+        raws = [hashlib.blake2b(obs.tobytes(), digest_size=16).digest() for obs in batch]  # 16 bytes, not 6.6 KB (47x47x3)
+        unseen = {raw: i for i, raw in enumerate(raws) if raw not in self._present_cache}
+        if unseen:  # key and present of a state, reused whenever the same observation recurs; new ones in one batch
+            if len(self._present_cache) + len(unseen) > 100_000:
+                self._present_cache.clear()
+            index = list(unseen.values())
+            for raw, i, present in zip(unseen, index, self.goal_space.present_batch(batch[index])):
+                self._present_cache[raw] = (self.goal_space.key(batch[i]), present)
+        for i, raw in enumerate(raws):
+            key, present = self._present_cache[raw]
             row = self._mask_cache.get((key, present))
             if row is None:
                 row = valid.copy()
