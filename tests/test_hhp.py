@@ -802,6 +802,14 @@ def test_meta_controller_chooses_only_choosable_subgoals() -> None:
     expected[~expected.any(axis=1)] = True  # a state where nothing is choosable keeps every sub-goal
     np.testing.assert_array_equal(mask[:, : len(goal_keys)], expected)
     assert not mask[:, len(goal_keys):].any()
+    # a cache of the states' reach smaller than a batch of states partly in it: emptied, then filled again with
+    # this batch's states, those it held before included
+    assert len(states) > 4
+    model.present_cache_size = 4
+    model._present_cache.clear()
+    np.testing.assert_array_equal(model.action_mask(states[:3]), mask[:3])
+    for order in (slice(None), slice(None, None, -1)):
+        np.testing.assert_array_equal(model.action_mask(states[order]), mask[order])
     for obs, allowed in zip(states, mask):
         for deterministic in (True, False):
             _, (goals, _) = model.predict(obs, deterministic=deterministic)

@@ -302,6 +302,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
     refused with the key to use (:data:`MOVED_ARGUMENTS`); models saved with them load as they were.
     """
 
+    #: states whose key and reach (:meth:`action_mask`) are kept; the cache is emptied when a batch would overfill it
+    present_cache_size = 100_000
     #: models saved before ``success_bonus`` existed load with its default
     success_bonus = "predicted"
     #: a MiniGrid model saved before the canvas's empty outer ring was left out reads the canvas with it (set by load)
@@ -646,8 +648,9 @@ class HhP(BetweenEpisodes, DoubleDQN):
         raws = [hashlib.blake2b(obs.tobytes(), digest_size=16).digest() for obs in batch]  # 16 bytes, not 6.6 KB (47x47x3)
         unseen = {raw: i for i, raw in enumerate(raws) if raw not in self._present_cache}
         if unseen:  # key and present of a state, reused whenever the same observation recurs; new ones in one batch
-            if len(self._present_cache) + len(unseen) > 100_000:
-                self._present_cache.clear()
+            if len(self._present_cache) + len(unseen) > self.present_cache_size:
+                self._present_cache.clear()  # and every state of the batch is new again
+                unseen = {raw: i for i, raw in enumerate(raws)}
             index = list(unseen.values())
             for raw, i, present in zip(unseen, index, self.goal_space.present_batch(batch[index])):
                 self._present_cache[raw] = (self.goal_space.key(batch[i]), present)
