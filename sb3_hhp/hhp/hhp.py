@@ -645,17 +645,17 @@ class HhP(BetweenEpisodes, DoubleDQN):
         batch = self._env_layout(np.asarray(observations)).astype(self.primitive_observation_space.dtype, copy=False)
         goal_keys = [goal.key for goal in self.subgoals]
         rows = np.empty((len(batch), len(valid)), dtype=bool)
-        raws = [hashlib.blake2b(obs.tobytes(), digest_size=16).digest() for obs in batch]  # 16 bytes, not 6.6 KB (47x47x3)
-        unseen = {raw: i for i, raw in enumerate(raws) if raw not in self._present_cache}
+        digests = [hashlib.blake2b(obs.tobytes(), digest_size=16).digest() for obs in batch]  # 16 bytes, not 6.6 KB (47x47x3)
+        unseen = {digest: i for i, digest in enumerate(digests) if digest not in self._present_cache}
         if unseen:  # key and present of a state, reused whenever the same observation recurs; new ones in one batch
             if len(self._present_cache) + len(unseen) > self.present_cache_size:
                 self._present_cache.clear()  # and every state of the batch is new again
-                unseen = {raw: i for i, raw in enumerate(raws)}
+                unseen = {digest: i for i, digest in enumerate(digests)}
             index = list(unseen.values())
-            for raw, i, present in zip(unseen, index, self.goal_space.present_batch(batch[index])):
-                self._present_cache[raw] = (self.goal_space.key(batch[i]), present)
-        for i, raw in enumerate(raws):
-            key, present = self._present_cache[raw]
+            for digest, i, present in zip(unseen, index, self.goal_space.present_batch(batch[index])):
+                self._present_cache[digest] = (self.goal_space.key(batch[i]), present)
+        for i, digest in enumerate(digests):
+            key, present = self._present_cache[digest]
             row = self._mask_cache.get((key, present))
             if row is None:
                 row = valid.copy()
