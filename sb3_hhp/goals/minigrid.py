@@ -320,14 +320,10 @@ class MiniGridGoalSpace(GoalSpace):
         near[:, center, center] = False
         rows, ys, xs = np.nonzero(near & _INTERACTIVE_TABLE[objects])
         columns = [0, 1, 2] if self.use_color else [0, 2]
-        cells = obs[rows, ys, xs][:, columns].astype(np.int64)
-        codes = rows.astype(np.int64)  # each cell as one number: (row, object[, colour], state), a byte each
-        for column in range(len(columns)):
-            codes = codes << 8 | cells[:, column]
+        cells = obs[rows, ys, xs][:, columns]
         found: list[list[tuple]] = [[] for _ in range(n)]
-        shifts = [8 * (len(columns) - 1 - column) for column in range(len(columns))]
-        for code in np.unique(codes).tolist():
-            found[code >> 8 * len(columns)].append(tuple(code >> shift & 255 for shift in shifts))
+        for row, *cell in np.unique(np.column_stack([rows, cells]), axis=0).tolist():  # (row, object[, colour], state)
+            found[row].append(tuple(cell))
         has_goal = (objects == GOAL).any(axis=(1, 2))
         goal_within = np.zeros(n, dtype=bool)
         goal_within[rows[cells[:, 0] == GOAL]] = True
