@@ -26,7 +26,8 @@ resumable: an experiment whose row is already in ``results.csv`` is skipped, so 
 finished by running the same command again; a failed one leaves no row, its log in ``logs/<run>.log``. An HhP
 run writes a checkpoint (model and replays) at every periodic evaluation, and an HhP run that stopped before its
 end goes on from its last checkpoint (``sb3_hhp.train --resume``): a run longer than a session is trained in parts,
-its curve joined from them. The baselines start again.
+its curve joined from them. The baselines write the same checkpoints (model, DQN's replay, PPO + RND's curiosity
+state) and go on from them the same way. Killing the runner stops its workers and their training processes.
 Output folder (``--out``, default ``benchmarks/results/<name>``)::
 
     results.csv        one row per env x variant x seed
@@ -58,6 +59,7 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import difflib
+import functools
 import json
 import multiprocessing
 import os
@@ -312,6 +314,21 @@ def baseline_settings(config: str, variant: str, env_id: str) -> dict[str, Any]:
 # ---------------------------------------------------------------------- one experiment (in a worker process)
 
 
+def die_with_parent(parent_pid: int) -> None:
+    """Have this process end (SIGTERM) when ``parent_pid``, the process that started it, ends: a runner killed
+    does not leave its workers, nor their training processes, running on (Linux's ``PR_SET_PDEATHSIG``; elsewhere
+    nothing). Called first thing in each worker and in each training process."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
+    if os.getppid() != parent_pid:  # the parent ended before the signal was asked for
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+
 def attempt_evaluations(log_folder: Path) -> list[Path]:
     """The ``evaluations.npz`` of every attempt of a run, oldest first: one for a run trained in one go, one per part
     for an HhP run resumed from its checkpoints (each part logs to a run folder of its own)."""
@@ -373,6 +390,16 @@ def latest_checkpoint(log_folder: Path) -> Optional[Path]:
     return best[1] if best else None
 
 
+def run_training(command: list[str], log_file: Any) -> int:
+    """Run a training command to its end, its output into ``log_file``, one OpenMP thread; it ends with the worker
+    that started it (:func:`die_with_parent`). Returns its exit status."""
+    completed = subprocess.run(
+        command, stdout=log_file, stderr=subprocess.STDOUT, env={**os.environ, "OMP_NUM_THREADS": "1"},
+        preexec_fn=functools.partial(die_with_parent, os.getpid()),
+    )
+    return completed.returncode
+
+
 def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> dict[str, Any]:
     summary_path = out / "runs" / f"{experiment.name}.json"
     log_folder = out / "logs" / experiment.name
@@ -394,11 +421,9 @@ def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> 
     command += list(sweep.hhp_options(experiment.variant))
     log_file.write("$ " + " ".join(command) + "\n")
     log_file.flush()
-    completed = subprocess.run(
-        command, stdout=log_file, stderr=subprocess.STDOUT, env={**os.environ, "OMP_NUM_THREADS": "1"}
-    )
-    if completed.returncode != 0:
-        raise RuntimeError(f"sb3_hhp.train exited with status {completed.returncode}")
+    returncode = run_training(command, log_file)
+    if returncode != 0:
+        raise RuntimeError(f"sb3_hhp.train exited with status {returncode}")
     summary = json.loads(summary_path.read_text())
     return {
         "summary": summary,
@@ -410,12 +435,12 @@ def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> 
 def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, Any]:
     import torch as th
     from stable_baselines3 import DQN, PPO
-    from stable_baselines3.common.callbacks import EvalCallback
+    from stable_baselines3.common.callbacks import CallbackList, EvalCallback
     from stable_baselines3.common.env_util import make_vec_env
 
     from sb3_hhp.curiosity import VecRNDReward
     from sb3_hhp.goals import register_minigrid_tasks, wrap_env
-    from sb3_hhp.train import domain_of, eval_seeds, evaluate
+    from sb3_hhp.train import checkpoint_callback_class, domain_of, eval_seeds, evaluate, read_checkpoint, resume_seed
 
     th.set_num_threads(1)
     register_minigrid_tasks()
@@ -423,27 +448,49 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
     n_envs = int(settings.pop("n_envs", 1))
     policy = settings.pop("policy", "MlpPolicy")
     vec_rnd = settings.pop("vec_rnd", None)
-    env = make_vec_env(experiment.env, n_envs=n_envs, seed=experiment.seed, wrapper_class=wrap_env)
+    log_folder = out / "logs" / experiment.name
+    # a run stopped before its end goes on from its last checkpoint, its envs seeded apart from its first part's
+    checkpoint = read_checkpoint(str(log_folder)) if latest_checkpoint(log_folder) is not None else None
+    seed = experiment.seed if checkpoint is None else resume_seed(experiment.seed, checkpoint["timesteps"])
+    env = make_vec_env(experiment.env, n_envs=n_envs, seed=seed, wrapper_class=wrap_env)
     if experiment.variant == "ppo_rnd":
         vec_rnd = dict(vec_rnd or {})
         vec_rnd["rnd_kwargs"] = {"seed": experiment.seed, **(vec_rnd.get("rnd_kwargs") or {})}
         env = VecRNDReward(env, **vec_rnd)
     algo = DQN if experiment.variant == "dqn" else PPO
-    model = algo(policy, env, seed=experiment.seed, device="cpu", verbose=0, **settings)
-    log_folder = out / "logs" / experiment.name
-    callback = None
+    part_folder = log_folder  # where this part's periodic evaluations go
+    if checkpoint is None:
+        model = algo(policy, env, seed=experiment.seed, device="cpu", verbose=0, **settings)
+    else:
+        print(f"Resuming {log_folder} at {checkpoint['timesteps']} steps")
+        if checkpoint["vec_rnd"] is not None:
+            env.load_state_dict(th.load(checkpoint["vec_rnd"], weights_only=True))
+        model = algo.load(checkpoint["model"], env=env, device="cpu", verbose=0)
+        if checkpoint["replay"] is not None:
+            model.load_replay_buffer(checkpoint["replay"])
+        model.set_random_seed(seed)
+        part_folder = log_folder / f"part_{checkpoint['timesteps']}"
+        part_folder.mkdir(parents=True, exist_ok=True)
+        (part_folder / "resumed.json").write_text(json.dumps({"timesteps": checkpoint["timesteps"], "seed": seed}) + "\n")
+    earlier_seconds = checkpoint["train_seconds"] if checkpoint is not None else 0.0
+    callbacks = []
     eval_freq = sweep.eval_freq[experiment.env]
     if eval_freq > 0:
         # periodic evaluations on their own env, seeded apart from training; stochastic on MiniGrid (as RL Zoo)
         eval_env = make_vec_env(
             experiment.env, n_envs=1, seed=eval_seeds(experiment.seed, 1)[0], wrapper_class=wrap_env
         )
-        callback = EvalCallback(
+        callbacks.append(EvalCallback(
             eval_env, n_eval_episodes=sweep.curve_episodes, eval_freq=max(eval_freq // n_envs, 1),
-            log_path=str(log_folder), deterministic=domain_of(experiment.env) != "minigrid", verbose=0,
-        )
+            log_path=str(part_folder), deterministic=domain_of(experiment.env) != "minigrid", verbose=0,
+        ))
+    # a checkpoint at every periodic evaluation (after it: its curve point is on disk), as HhP runs write them;
+    # DQN's at the end of the rollout, once the step's transition is in its replay
+    callbacks.append(checkpoint_callback_class()(eval_freq or max(experiment.steps // 10, 1), str(log_folder),
+                                                  earlier_seconds, at_rollout_end=algo is DQN))
     start = time.perf_counter()
-    model.learn(experiment.steps, callback=callback)
+    model.learn(max(0, experiment.steps - model.num_timesteps), callback=CallbackList(callbacks),
+                reset_num_timesteps=checkpoint is None)
     train_seconds = time.perf_counter() - start
     model.save(log_folder / "model.zip")
     seeds = eval_seeds(experiment.seed, sweep.eval_episodes)
@@ -454,7 +501,10 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
     summary: dict[str, Any] = {
         "env": experiment.env, "variant": experiment.variant, "seed": experiment.seed,
         "total_timesteps": int(model.num_timesteps), "train_seconds": round(train_seconds, 3),
-        "fps": round(model.num_timesteps / train_seconds, 1) if train_seconds > 0 else None,
+        "fps": round((model.num_timesteps - (checkpoint or {}).get("timesteps", 0)) / train_seconds, 1)
+        if train_seconds > 0 else None,
+        **({"resumed_at": checkpoint["timesteps"], "train_seconds_all_parts": round(earlier_seconds + train_seconds, 3)}
+           if checkpoint is not None else {}),
         "eval_episodes": len(seeds), "eval_seeds": seeds, "hyperparams": {"n_envs": n_envs, "policy": policy,
         **settings, **({"vec_rnd": vec_rnd} if vec_rnd else {})}, "log_path": str(log_folder),
     }
@@ -483,7 +533,7 @@ def run_experiment(experiment: Experiment, sweep: Sweep, out: Union[str, Path]) 
     """
     out = Path(out)
     log_folder = out / "logs" / experiment.name
-    resumes = sweep.is_hhp(experiment.variant) and latest_checkpoint(log_folder) is not None
+    resumes = latest_checkpoint(log_folder) is not None  # every variant goes on from its last checkpoint
     if not resumes:
         shutil.rmtree(log_folder, ignore_errors=True)  # a failed earlier attempt's files
     log_folder.mkdir(parents=True, exist_ok=True)
@@ -636,7 +686,8 @@ def run_sweep(
     if not todo:
         return csv_path, failures
     context = multiprocessing.get_context("spawn")
-    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context, max_tasks_per_child=1) as pool:
+    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context, max_tasks_per_child=1,
+                                                initializer=die_with_parent, initargs=(os.getpid(),)) as pool:
         futures = {pool.submit(runner, experiment, sweep, out): experiment for experiment in todo}
         progress = tqdm(concurrent.futures.as_completed(futures), total=len(futures), desc=sweep.name, unit="run")
         for future in progress:

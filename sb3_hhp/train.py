@@ -245,27 +245,33 @@ def _replaced(module: Any, name: str, value: Any) -> Iterator[None]:
         setattr(module, name, original)
 
 
-def _checkpoint_callback_class() -> type:
+def checkpoint_callback_class() -> type:
     from stable_baselines3.common.callbacks import BaseCallback
 
     class LatestCheckpoint(BaseCallback):
-        """Every ``save_freq`` primitive steps (and at the end of training), the model (:meth:`HhP.save`) and its
-        replays (:meth:`HhP.save_replay_buffer`) in ``<run folder>/checkpoints/<steps>/``, then ``checkpoint.json``
-        pointing at them, then the older checkpoints removed: a run stopped at any moment keeps a complete
-        checkpoint, which ``--resume`` goes on from.
+        """Every ``save_freq`` primitive steps (and at the end of training), the model (:meth:`HhP.save`), its
+        replays (:meth:`HhP.save_replay_buffer`; any off-policy model's) and the state of a
+        :class:`~sb3_hhp.curiosity.VecRNDReward` around its env (an on-policy baseline's curiosity) in
+        ``<run folder>/checkpoints/<steps>/``, then ``checkpoint.json`` pointing at them, then the older checkpoints
+        removed: a run stopped at any moment keeps a complete checkpoint, which ``--resume`` (HhP) or the benchmark
+        runner (every variant) goes on from.
 
         :param save_freq: primitive steps between checkpoints (counted on the model's step count, so a resumed run
             keeps the same checkpoint steps)
         :param save_path: the run folder
         :param train_seconds: seconds of training before this part (a resumed run's, up to its checkpoint): each
             checkpoint records the training time up to it, every part together
+        :param at_rollout_end: write a checkpoint that falls due at the end of the rollout it fell due in (SB3's own
+            off-policy algorithms call the callbacks before they store the step's transition; HhP stores first)
         """
 
-        def __init__(self, save_freq: int, save_path: str, train_seconds: float = 0.0, verbose: int = 0) -> None:
+        def __init__(self, save_freq: int, save_path: str, train_seconds: float = 0.0, verbose: int = 0,
+                     at_rollout_end: bool = False) -> None:
             super().__init__(verbose)
             self.save_freq, self.save_path = int(save_freq), Path(save_path)
             self.saved_at = -1
             self.earlier_seconds, self.start = float(train_seconds), time.perf_counter()
+            self.at_rollout_end, self.due = bool(at_rollout_end), False
 
         def _init_callback(self) -> None:
             self.saved_at = self.model.num_timesteps  # a resumed run's checkpoint is its start
@@ -273,8 +279,15 @@ def _checkpoint_callback_class() -> type:
 
         def _on_step(self) -> bool:
             if self.num_timesteps // self.save_freq > max(self.saved_at, 0) // self.save_freq:
-                self.save()
+                if self.at_rollout_end:
+                    self.due = True
+                else:
+                    self.save()
             return True
+
+        def _on_rollout_end(self) -> None:
+            if self.due:
+                self.save()
 
         def _on_training_end(self) -> None:
             if self.num_timesteps != self.saved_at:
@@ -284,27 +297,45 @@ def _checkpoint_callback_class() -> type:
             steps = int(self.model.num_timesteps)
             folder = self.save_path / "checkpoints" / str(steps)
             folder.mkdir(parents=True, exist_ok=True)
+            files = {"model": f"checkpoints/{steps}/model.zip"}
             self.model.save(folder / "model.zip")
-            self.model.save_replay_buffer(folder / "replay.pkl")
+            if hasattr(self.model, "save_replay_buffer"):  # off-policy: HhP, DQN
+                self.model.save_replay_buffer(folder / "replay.pkl")
+                files["replay"] = f"checkpoints/{steps}/replay.pkl"
+            curiosity = vec_rnd_of(self.model.get_env())
+            if curiosity is not None:
+                import torch as th
+
+                th.save(curiosity.state_dict(), folder / "vec_rnd.pt")
+                files["vec_rnd"] = f"checkpoints/{steps}/vec_rnd.pt"
             pointer = self.save_path / CHECKPOINT_FILE
             temporary = pointer.with_suffix(".json.tmp")
             seconds = round(self.earlier_seconds + time.perf_counter() - self.start, 1)
-            temporary.write_text(json.dumps({"timesteps": steps, "model": f"checkpoints/{steps}/model.zip",
-                                             "replay": f"checkpoints/{steps}/replay.pkl", "train_seconds": seconds}) + "\n")
+            temporary.write_text(json.dumps({"timesteps": steps, **files, "train_seconds": seconds}) + "\n")
             os.replace(temporary, pointer)
             for older in (self.save_path / "checkpoints").iterdir():
                 if older.name != str(steps):
                     shutil.rmtree(older, ignore_errors=True)
-            self.saved_at = steps
+            self.saved_at, self.due = steps, False
             if self.verbose:
                 print(f"Checkpoint at {steps} steps: {folder}")
 
     return LatestCheckpoint
 
 
+def vec_rnd_of(env: Any) -> Any:
+    """The :class:`~sb3_hhp.curiosity.VecRNDReward` among the VecEnv wrappers of ``env``, None when there is none."""
+    from stable_baselines3.common.vec_env import unwrap_vec_wrapper
+
+    from sb3_hhp.curiosity import VecRNDReward
+
+    return unwrap_vec_wrapper(env, VecRNDReward) if env is not None else None
+
+
 def read_checkpoint(run_folder: str) -> dict[str, Any]:
-    """The latest checkpoint of a run folder (``checkpoint.json``): its step count and the paths of the model and the
-    replays. A clear error when there is none or its files are gone."""
+    """The latest checkpoint of a run folder (``checkpoint.json``): its step count and the paths of the model, the
+    replays (off-policy models) and a curiosity wrapper's state (``vec_rnd``, where the run had one; None
+    otherwise). A clear error when there is none or its files are gone."""
     folder = Path(run_folder)
     if not folder.is_dir():
         raise ConfigError(f"--resume {run_folder}: no such run folder (e.g. logs/hhp/MiniGrid-DoorKey-8x8-v0_1)")
@@ -315,12 +346,13 @@ def read_checkpoint(run_folder: str) -> dict[str, Any]:
     try:
         checkpoint = json.loads(pointer.read_text())
         checkpoint = {"timesteps": int(checkpoint["timesteps"]), "model": str(folder / checkpoint["model"]),
-                      "replay": str(folder / checkpoint["replay"]), "run_folder": str(folder),
-                      "train_seconds": float(checkpoint.get("train_seconds", 0.0))}
+                      **{what: str(folder / checkpoint[what]) if checkpoint.get(what) else None
+                         for what in ("replay", "vec_rnd")},
+                      "run_folder": str(folder), "train_seconds": float(checkpoint.get("train_seconds", 0.0))}
     except (ValueError, KeyError, TypeError) as error:
         raise ConfigError(f"--resume {run_folder}: {pointer} is damaged ({error})") from error
-    for what in ("model", "replay"):
-        if not os.path.isfile(checkpoint[what]):
+    for what in ("model", "replay", "vec_rnd"):
+        if checkpoint[what] is not None and not os.path.isfile(checkpoint[what]):
             raise ConfigError(f"--resume {run_folder}: the checkpoint's {what} {checkpoint[what]} is missing")
     return checkpoint
 
@@ -425,7 +457,7 @@ def _experiment_manager_class() -> type:
             super().create_callbacks()
             if self.hhp_options.checkpoint_freq > 0:
                 earlier = self.checkpoint["train_seconds"] if self.checkpoint is not None else 0.0
-                self.callbacks.append(_checkpoint_callback_class()(self.hhp_options.checkpoint_freq, self.save_path, earlier))
+                self.callbacks.append(checkpoint_callback_class()(self.hhp_options.checkpoint_freq, self.save_path, earlier))
 
         def _load_pretrained_agent(self, hyperparams: dict[str, Any], env: Any) -> Any:
             """The checkpoint of ``--resume``: the model as it was saved (its own hyperparameters), with this run's
@@ -751,7 +783,8 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
     if options.checkpoint_freq < 0:
         raise ConfigError(f"--checkpoint-freq must be >= 0 (0: no checkpoints), got {options.checkpoint_freq}")
     if options.resume is not None:
-        read_checkpoint(options.resume)  # refused before anything is built
+        if read_checkpoint(options.resume)["replay"] is None:  # refused before anything is built
+            raise ConfigError(f"--resume {options.resume}: the checkpoint has no replays (not an HhP run's checkpoint)")
     if not 0 <= options.label_port <= 65535:
         raise ConfigError(f"--label-port must be in [0, 65535], got {options.label_port}")
     zoo = _zoo_peek(zoo_argv)

@@ -1,7 +1,12 @@
 """Tests of the benchmark runner (python -m benchmarks.run) and its report (benchmarks/report.py), without training."""
 
+import contextlib
 import os
+import signal
+import subprocess
+import sys
 import textwrap
+import time
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +30,9 @@ from benchmarks.run import (
     add_result,
     pending_experiments,
     read_results,
+    run_experiment,
     run_sweep,
+    run_training,
     select_experiments,
 )
 
@@ -303,6 +310,123 @@ def test_a_stopped_hhp_run_goes_on_from_its_last_checkpoint(tmp_path, monkeypatc
 
 class FailedRun:
     returncode = 1
+
+
+TINY_BASELINES = """
+ppo_rnd:
+  default:
+    n_envs: 2
+    n_steps: 32
+    batch_size: 32
+    n_epochs: 1
+    vec_rnd: {intrinsic_coef: 0.5, update_every: 16, rnd_kwargs: {hidden_dim: 16, embedding_dim: 8}}
+dqn:
+  default:
+    n_envs: 1
+    learning_starts: 64
+    buffer_size: 1000
+    batch_size: 16
+    train_freq: 4
+    target_update_interval: 100
+"""
+
+
+@pytest.mark.parametrize("variant", ["ppo_rnd", "dqn"])
+def test_a_stopped_baseline_run_goes_on_from_its_last_checkpoint(tmp_path, variant):
+    """The flat baselines write a checkpoint at every periodic evaluation (the model; DQN's replay; PPO + RND's
+    curiosity state) and a run stopped before its end goes on from it: the step count, the curiosity's state and the
+    replay carry on, the curve joins both parts, the training time counts both."""
+    import torch as th
+
+    from sb3_hhp.train import read_checkpoint
+
+    write(tmp_path, TINY_BASELINES, "baselines.yml")
+    sweep = load_sweep(write(tmp_path, f"""
+        name: tiny
+        envs: [MiniGrid-Empty-5x5-v0]
+        variants: [{variant}]
+        seeds: [0]
+        steps: 512
+        eval_freq: 256
+        curve_episodes: 2
+        eval_episodes: 2
+        baselines_conf: {tmp_path / "baselines.yml"}
+    """))
+    out = tmp_path / "out"
+    # part 1: a budget of 256 steps stands for a run stopped after its first checkpoint
+    first = Experiment("MiniGrid-Empty-5x5-v0", variant, 0, 256)
+    run_experiment(first, sweep, out)
+    log = out / "logs" / first.name
+    checkpoint = read_checkpoint(str(log))
+    assert checkpoint["timesteps"] == 256
+    assert (checkpoint["vec_rnd"] is not None) == (variant == "ppo_rnd")
+    assert (checkpoint["replay"] is not None) == (variant == "dqn")
+    # part 2: the whole budget, from that checkpoint
+    row = run_experiment(Experiment("MiniGrid-Empty-5x5-v0", variant, 0, 512), sweep, out)
+    assert row["timesteps"] == 512
+    summary = pd.read_json(out / row["summary"], typ="series")
+    assert summary["resumed_at"] == 256
+    assert summary["train_seconds_all_parts"] > summary["train_seconds"] > 0
+    assert (log / "part_256" / "resumed.json").is_file()
+    curve = pd.read_csv(out / row["curve"])
+    assert curve["steps"].tolist() == [256, 512]  # one point from each part
+    checkpoint = read_checkpoint(str(log))
+    assert checkpoint["timesteps"] == 512
+    if variant == "ppo_rnd":  # 512 steps of 2 envs, an update every 16: the first part's updates are counted on
+        assert th.load(checkpoint["vec_rnd"], weights_only=True)["n_updates"] == 512 // 2 // 16
+    else:  # the replay holds both parts' transitions
+        from stable_baselines3.common.save_util import load_from_pkl
+
+        assert load_from_pkl(checkpoint["replay"]).size() == 512
+
+
+def sleeping_row(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, Any]:
+    """Stands in for run_experiment: starts a training process that records its pid and sleeps."""
+    (out / "worker.pid").write_text(str(os.getpid()))
+    script = f"import os, time; open({str(out / 'child.pid')!r}, 'w').write(str(os.getpid())); time.sleep(120)"
+    with open(out / "child.log", "w") as log_file:
+        run_training([sys.executable, "-c", script], log_file)
+    return fake_row(experiment, sweep, out)
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"  # a zombie has ended
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_killing_the_runner_stops_its_workers_and_their_training(tmp_path):
+    sweep = write(tmp_path, GRID.replace("ppo", "hhp") + "steps: 100\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    script = ("import sys; from pathlib import Path; from benchmarks.run import load_sweep, run_sweep; "
+              "from test_benchmark_runner import sleeping_row; "
+              f"run_sweep(load_sweep({str(sweep)!r}, check_envs=False), Path({str(out)!r}), runner=sleeping_row)")
+    root = Path(__file__).resolve().parent.parent
+    runner = subprocess.Popen([sys.executable, "-c", script], cwd=root,
+                              env={**os.environ, "PYTHONPATH": os.pathsep.join([str(root), str(root / "tests")])})
+    try:
+        deadline = time.monotonic() + 60
+        while not (out / "child.pid").is_file() or not (out / "child.pid").read_text():
+            assert runner.poll() is None and time.monotonic() < deadline, "the runner did not start its training"
+            time.sleep(0.1)
+        worker, child = (int((out / name).read_text()) for name in ("worker.pid", "child.pid"))
+        assert alive(worker) and alive(child)
+        runner.send_signal(signal.SIGTERM)
+        runner.wait(timeout=30)
+        deadline = time.monotonic() + 30
+        while (alive(worker) or alive(child)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not alive(worker), "the worker outlived the runner"
+        assert not alive(child), "the training process outlived the runner"
+    finally:
+        for pid_file in ("worker.pid", "child.pid"):
+            with contextlib.suppress(OSError, ValueError):
+                os.kill(int((out / pid_file).read_text()), signal.SIGKILL)
+        runner.kill()
 
 
 def test_report_shows_runs_that_have_no_row_yet(tmp_path):

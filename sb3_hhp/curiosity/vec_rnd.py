@@ -15,6 +15,7 @@ With RL Zoo, the same wrapper goes in the hyperparameter file:
 from typing import Any, Optional
 
 import numpy as np
+import torch as th
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 
@@ -98,3 +99,40 @@ class VecRNDReward(VecEnvWrapper):
             self.n_updates += 1
             self._buffer.clear()
         return obs, extrinsic + self.intrinsic_coef * intrinsic, dones, infos
+
+    def state_dict(self) -> dict[str, Any]:
+        """
+        Everything needed to go on exactly where this wrapper stands (a checkpointed run resumed): the RND's state
+        (:meth:`RND.state_dict`), the next observations buffered for the next predictor update (as tensors), the
+        update count and the last loss. Tensors and plain Python data: written with ``th.save``, read back with
+        ``th.load(..., weights_only=True)``.
+
+        :return: the state
+        """
+        return {
+            "rnd": self.rnd.state_dict(),
+            "buffer": [th.from_numpy(np.array(obs, copy=True)) for obs in self._buffer],
+            "n_updates": int(self.n_updates),
+            "last_loss": self.last_loss,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """
+        Restore a state produced by :meth:`state_dict` of a wrapper built with the same observation space and RND
+        sizes.
+
+        :param state: the state
+        :raises ValueError: a state whose buffered observations do not fit this wrapper's env (say what differs)
+        """
+        buffer = [np.asarray(obs.numpy() if isinstance(obs, th.Tensor) else obs) for obs in state["buffer"]]
+        expected = (self.num_envs, *self.observation_space.shape)
+        for obs in buffer:
+            if obs.shape != expected:
+                raise ValueError(
+                    f"The saved VecRNDReward buffered observations of shape {obs.shape}, this one's env gives "
+                    f"{expected}: restore it around an env with the same number of envs and observation space"
+                )
+        self.rnd.load_state_dict(state["rnd"])
+        self._buffer = buffer
+        self.n_updates = int(state["n_updates"])
+        self.last_loss = None if state["last_loss"] is None else float(state["last_loss"])
