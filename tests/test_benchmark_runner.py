@@ -497,3 +497,43 @@ def test_the_speed_script_splits_a_learner_call() -> None:
     # the parts are measured apart (torch's own times, and the profiled calls' wall time less them)
     assert result["outside_torch_ms"] > 0 and result["products_ms"] < result["profiled_call_ms"]
     assert result["top_torch_ops_ms"]["aten::baddbmm"] <= result["products_ms"]
+
+
+def test_the_evaluation_script_replays_a_runs_episodes_with_load_options(tmp_path, monkeypatch, capsys) -> None:
+    """``benchmarks/evaluate.py`` evaluates a run's model on the episodes the run was evaluated on (seeds seed + 10000,
+    ...), once as saved and once with each ``--compare`` setting given to ``HhP.load``; a log folder resolves to the
+    run's final model, else its newest checkpoint."""
+    import gymnasium as gym
+
+    from benchmarks import evaluate as script
+    from sb3_hhp import HhP
+
+    run = tmp_path / "logs" / "run"
+    (run / "checkpoints" / "100").mkdir(parents=True)
+    model = HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0"), seed=0, buffer_size=1000, learning_starts=10)
+    model.save(run / "checkpoints" / "100" / "model.zip")
+    assert script.model_file(str(run), "MiniGrid-Empty-5x5-v0") == run / "checkpoints" / "100" / "model.zip"
+    model.save(run / "hhp" / "MiniGrid-Empty-5x5-v0_1" / "MiniGrid-Empty-5x5-v0.zip")
+    final = run / "hhp" / "MiniGrid-Empty-5x5-v0_1" / "MiniGrid-Empty-5x5-v0.zip"
+    assert script.model_file(str(run), "MiniGrid-Empty-5x5-v0") == final
+    calls = []
+
+    def fake_evaluate(model, make_envs, seeds, deterministic=True):
+        calls.append((model.break_cycles, list(seeds), deterministic))
+        return {"successes": [model.break_cycles] * len(seeds), "returns": [0.5] * len(seeds)}
+
+    monkeypatch.setattr(script, "evaluate", fake_evaluate)
+    out = tmp_path / "figures.json"
+    assert script.main(["MiniGrid-Empty-5x5-v0", f"3={run}", "--episodes", "4", "--compare", '{"break_cycles": false}',
+                        "--out", str(out)]) == 0
+    seeds = [10_003, 10_004, 10_005, 10_006]
+    assert calls == [(True, seeds, True), (True, seeds, False), (False, seeds, True), (False, seeds, False)]
+    runs = pd.read_json(out, typ="series")["runs"]
+    assert [(row["load_options"], row["deterministic"], row["stochastic"]) for row in runs] == [
+        ({}, 1.0, 1.0), ({"break_cycles": False}, 0.0, 0.0)]
+    assert all(row["model"] == str(final) and row["seed"] == 3 for row in runs)
+    calls.clear()
+    script.main(["MiniGrid-Empty-5x5-v0", f"3={final}", "--episodes", "2", "--deterministic-only"])
+    assert calls == [(True, [10_003, 10_004], True)]
+    with pytest.raises(SystemExit, match="SEED=PATH"):
+        script.main(["MiniGrid-Empty-5x5-v0", str(final)])

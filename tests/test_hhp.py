@@ -105,38 +105,75 @@ def test_predict_single_and_vectorised(trained: HhP) -> None:
     assert n_goals >= 2
     action, state = trained.predict(obs[0], deterministic=True)
     assert np.shape(action) == () and trained.primitive_action_space.contains(int(action))
-    goals, steps = state
+    goals, steps, *_ = state
     assert goals.shape == (1,) and steps.shape == (1,)
     assert 0 <= goals[0] < n_goals and steps[0] == 1
     # the action is the chosen sub-goal's subpolicy acting greedily
     assert int(action) == int(trained.subpolicies.act(goals[:1], obs[0][None], deterministic=True)[0])
 
-    actions, (goals, steps) = trained.predict(obs, deterministic=True)
+    actions, (goals, steps, *_) = trained.predict(obs, deterministic=True)
     assert actions.shape == (len(obs),)
     assert all(trained.primitive_action_space.contains(int(a)) for a in actions)
     assert goals.shape == steps.shape == (len(obs),)
     assert ((goals >= 0) & (goals < n_goals)).all() and (steps == 1).all()
     # stochastic predictions stay in the spaces too
-    actions, (goals, _) = trained.predict(obs, deterministic=False)
+    actions, (goals, _, *_) = trained.predict(obs, deterministic=False)
     assert all(trained.primitive_action_space.contains(int(a)) for a in actions)
     assert trained.valid_actions[goals].all()
+
+
+@pytest.mark.parametrize("break_cycles", [True, False])
+def test_a_deterministic_walk_that_comes_back_takes_its_best_untried_action(break_cycles: bool, monkeypatch) -> None:
+    """A greedy learner on a deterministic env that comes back to an observation would go round the same cycle until
+    its sub-goal gave up; with ``break_cycles`` it takes there its best action not yet taken there (in this walk)."""
+    env = wrap_env(gym.make(DOORKEY))
+    obs, _ = env.reset(seed=0)
+    model = make_model(discovery="none", subgoals=[obs], break_cycles=break_cycles)
+    q_row = np.array([3.0, 1.0, 2.0, 0.5, 0.4, 0.3, 0.2])  # greedy: turn left, round and round in one cell
+    monkeypatch.setattr(model.subpolicies, "q_values", lambda goals, batch: th.as_tensor(np.tile(q_row, (len(goals), 1))))
+    monkeypatch.setattr(model.subpolicies, "allowed_actions", lambda batch: None)
+    monkeypatch.setattr("sb3_hhp.hhp.hhp.option_terminal", lambda space, key, goal, steps, limit: (False, steps >= limit))
+    state, seen, actions = None, [], []
+    for t in range(16):
+        action, state = model.predict(obs, state=state, episode_start=np.array([t == 0]), deterministic=True)
+        assert state[0][0] == 0 and state[1][0] == t + 1  # one walk, never renewed
+        before = [a for o, a in zip(seen, actions) if np.array_equal(o, obs)]
+        untried = [a for a in np.argsort(-q_row) if a not in before]
+        expected = untried[0] if before and break_cycles and untried else 0
+        assert int(action) == expected, f"step {t}: took {int(action)}, expected {expected}"
+        seen.append(obs)
+        actions.append(int(action))
+        obs, *_ = env.step(action)
+    if break_cycles:  # four turns bring it back: the fifth step tries the next best action
+        assert actions[4] == 2 and len(set(actions)) >= 3
+    else:
+        assert actions == [0] * 16
+    # the walk's memory is dropped with the walk: a new episode starts greedy again
+    action, state = model.predict(seen[4], state=state, episode_start=np.array([True]), deterministic=True)
+    assert int(action) == 0 and state[1][0] == 1
+    # back in that observation later in the walk: the deterministic policy breaks the cycle, the stochastic one is left
+    # as it is (its learners explore; none here)
+    later = (np.array([0]), np.array([5]), *state[2:])
+    assert int(model.predict(seen[4], state=later, deterministic=True)[0]) == (2 if break_cycles else 0)
+    monkeypatch.setattr(model.subpolicies, "exploration_rate", lambda goal: 0.0)
+    assert int(model.predict(seen[4], state=later, deterministic=False)[0]) == 0
 
 
 def test_predict_keeps_the_subgoal_until_episode_start_or_give_up(trained: HhP) -> None:
     goal_space = trained.goal_space
     obs = observations()[:1]
-    _, (chosen, _) = trained.predict(obs, deterministic=True)
+    _, (chosen, _, *_) = trained.predict(obs, deterministic=True)
     key = goal_space.key(obs[0])
     # a sub-goal other than the meta-controller's choice, not reached in this observation
     other = next(i for i, goal in enumerate(trained.subgoals) if i != chosen[0] and goal.key != key)
     state = (np.array([other]), np.array([5]))
 
-    _, (goals, steps) = trained.predict(obs, state=state, episode_start=np.array([False]), deterministic=True)
+    _, (goals, steps, *_) = trained.predict(obs, state=state, episode_start=np.array([False]), deterministic=True)
     assert goals[0] == other and steps[0] == 6
-    _, (goals, steps) = trained.predict(obs, state=state, episode_start=np.array([True]), deterministic=True)
+    _, (goals, steps, *_) = trained.predict(obs, state=state, episode_start=np.array([True]), deterministic=True)
     assert goals[0] == chosen[0] and steps[0] == 1
     gave_up = (np.array([other]), np.array([trained.max_subgoal_steps]))
-    _, (goals, steps) = trained.predict(obs, state=gave_up, episode_start=np.array([False]), deterministic=True)
+    _, (goals, steps, *_) = trained.predict(obs, state=gave_up, episode_start=np.array([False]), deterministic=True)
     assert goals[0] == chosen[0] and steps[0] == 1
     # the state passed in is not modified in place
     assert state[0][0] == other and state[1][0] == 5
@@ -156,9 +193,9 @@ def test_predict_keeps_the_subgoal_until_episode_start_or_give_up(trained: HhP) 
         for trained.mask_subgoals in (True, False):  # unmasked, every state has another sub-goal to take
             for start in starts[::10]:
                 start = start[None]
-                _, (first, _) = trained.predict(start, deterministic=True)
+                _, (first, *_) = trained.predict(start, deterministic=True)
                 failed = (np.array([first[0]]), np.array([trained.max_subgoal_steps]))
-                _, (goals, _) = trained.predict(start, state=failed, episode_start=np.array([False]), deterministic=True)
+                _, (goals, _, *_) = trained.predict(start, state=failed, episode_start=np.array([False]), deterministic=True)
                 with th.no_grad():
                     q_values = trained.q_net(trained.policy.obs_to_tensor(start)[0]).cpu().numpy()[0, : len(trained.subgoals)]
                 mask = np.broadcast_to(trained.action_mask(start), (1, int(trained.action_space.n)))
@@ -180,7 +217,7 @@ def test_evaluate_policy_works_unchanged(trained: HhP) -> None:
     lengths_seen = []
 
     def record(locals_: dict, _globals: dict) -> None:
-        goals, steps = locals_["states"]
+        goals, steps, *_ = locals_["states"]
         assert goals.shape == (1,) and 0 <= goals[0] < len(trained.subgoals) and steps[0] >= 1
         lengths_seen.append(locals_["current_lengths"][0])
 
@@ -770,7 +807,7 @@ def test_no_discovery_uses_only_the_subgoals_handed_in() -> None:
     for goal, obs in zip(model.subgoals, given):
         np.testing.assert_array_equal(goal.obs, obs)
     # a sub-goal that is reached is renewed at once: state (0, 3) in the state of sub-goal 0
-    _, (goals, steps) = model.predict(given[0][None], state=(np.array([0]), np.array([3])), deterministic=True)
+    _, (goals, steps, *_) = model.predict(given[0][None], state=(np.array([0]), np.array([3])), deterministic=True)
     assert steps[0] == 1 and model.valid_actions[goals[0]]
 
 
@@ -812,7 +849,7 @@ def test_meta_controller_chooses_only_choosable_subgoals() -> None:
         np.testing.assert_array_equal(model.action_mask(states[order]), mask[order])
     for obs, allowed in zip(states, mask):
         for deterministic in (True, False):
-            _, (goals, _) = model.predict(obs, deterministic=deterministic)
+            _, (goals, _, *_) = model.predict(obs, deterministic=deterministic)
             assert allowed[goals[0]]
     unmasked = make_model(DOORKEY, mask_subgoals=False)
     unmasked.learn(300)
@@ -1043,7 +1080,7 @@ def test_subgoal_set_grows_past_the_initial_capacity() -> None:
     np.testing.assert_allclose(q_target[:, :2], q_before, rtol=1e-6)
     assert len(model.subpolicies) == 3
     # the masked slot is never chosen
-    _, (goals, _) = model.predict(obs, deterministic=True)
+    _, (goals, _, *_) = model.predict(obs, deterministic=True)
     assert (goals < 3).all()
 
     model.learn(600)

@@ -27,18 +27,31 @@ from sb3_hhp.hierarchy.options import option_terminal  # noqa: E402
 import gymnasium as gym  # noqa: E402
 
 
+def env_state(env: gym.Env) -> bytes:
+    """The whole state of a MiniGrid env (the grid, the agent's cell, direction and what it carries) as bytes: under a
+    deterministic policy a sub-goal whose walk comes back to a state it was in goes round that cycle until it gives up."""
+    grid = env.unwrapped
+    carrying = grid.carrying.encode() if grid.carrying is not None else ()
+    return grid.grid.encode().tobytes() + bytes([*grid.agent_pos, grid.agent_dir, *carrying])
+
+
 def trace_episode(model: HhP, env: gym.Env, seed: int, deterministic: bool) -> dict:
-    """One episode: its choices ``(state key, chosen sub-goal, reached, steps)`` and whether the task was solved."""
+    """One episode: its choices ``(state key, chosen sub-goal, reached, steps, cycled)`` and whether the task was
+    solved; ``cycled``: the env came back to a state it was in since the choice, before the sub-goal was reached."""
     obs, _ = env.reset(seed=seed)
     describe = model.goal_space.describe
-    state, start, choices, current = None, True, [], None
+    state, start, choices, current, seen = None, True, [], None, set()
     while True:
         action, state = model.predict(obs, state=state, episode_start=np.array([start]), deterministic=deterministic)
         goal, steps = int(state[0][0]), int(state[1][0])
         if steps == 1:  # a new choice was made in this state
             current = dict(state=describe(model.goal_space.key(obs)), goal=describe(model.subgoals[goal].key),
-                           reached=False, steps=0)
+                           reached=False, steps=0, cycled=False)
             choices.append(current)
+            seen = set()
+        here = env_state(env)
+        current["cycled"] = current["cycled"] or (here in seen and not current["reached"])
+        seen.add(here)
         obs, reward, terminated, truncated, _ = env.step(action)
         start = False
         current["steps"] += 1
@@ -70,15 +83,17 @@ def main() -> None:
         chain = " -> ".join(f"{c['goal']}{'' if c['reached'] else ' (failed)'}" for c in episode["choices"])
         print(f"seed {episode['seed']} ({'solved' if episode['solved'] else 'not solved'}, "
               f"{len(episode['choices'])} choices): {chain[:1500]}\n")
-    chosen, reached = Counter(), Counter()
+    chosen, reached, cycled = Counter(), Counter(), Counter()
     for episode in episodes:
         for choice in episode["choices"]:
             chosen[choice["state"], choice["goal"]] += 1
             reached[choice["state"], choice["goal"]] += int(choice["reached"])
-    print(f"solved {sum(e['solved'] for e in episodes)} of {len(episodes)} episodes; choices made:")
-    print(f"{'chosen':>7} {'reached':>7}  in state -> sub-goal")
+            cycled[choice["state"], choice["goal"]] += int(choice["cycled"])
+    print(f"solved {sum(e['solved'] for e in episodes)} of {len(episodes)} episodes; choices made "
+          "(cycled: came back to a state it had been in, unreached):")
+    print(f"{'chosen':>7} {'reached':>7} {'cycled':>7}  in state -> sub-goal")
     for (state_key, goal), count in chosen.most_common(30):
-        print(f"{count:7d} {reached[state_key, goal]:7d}  {state_key} -> {goal}")
+        print(f"{count:7d} {reached[state_key, goal]:7d} {cycled[state_key, goal]:7d}  {state_key} -> {goal}")
     if args.out:
         pathlib.Path(args.out).write_text(json.dumps(dict(model=model_path, env=args.env, episodes=episodes), indent=1))
 

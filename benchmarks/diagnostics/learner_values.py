@@ -71,7 +71,7 @@ def main() -> None:
     obs = np.stack(states)
     learners = model.subpolicies
     q = learners.q_values(np.full(len(obs), goal), obs).cpu().numpy().astype(float)
-    mask = learners._mask(obs)
+    mask = learners.allowed_actions(obs)
     allowed = np.where(mask, q, -np.inf) if mask is not None else q
     greedy = allowed.argmax(axis=1)  # the learner's greedy action, as its act(deterministic=True) takes it
     others = allowed.copy()

@@ -252,6 +252,11 @@ class HhP(BetweenEpisodes, DoubleDQN):
     :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
         calls choosable there (:meth:`~sb3_hhp.goals.GoalSpace.choosable`: not already achieved; on MiniGrid,
         also a milestone); in acting, exploring and the TD target alike (see the README's Design)
+    :param break_cycles: the deterministic policy (``predict(..., deterministic=True)``), discrete actions: a sub-goal
+        learner whose walk comes back to an observation it was in since its sub-goal was chosen takes, there, its best
+        action not yet taken there, where a greedy policy on a deterministic env would go round the same cycle until
+        the sub-goal gives up (see the README's Design); False: plain greedy. Training is unaffected (its learners
+        explore)
     :param predictor_input: what the preference predictor reads: "observation", "features" (the goal space's
         compact description of a state, :meth:`~sb3_hhp.goals.GoalSpace.features`) or "auto" (features when the
         goal space has them; see the README's Design)
@@ -334,6 +339,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         center_bonus: Union[bool, str] = "max",
         success_bonus: str = "predicted",
         mask_subgoals: bool = True,
+        break_cycles: bool = True,
         predictor_input: str = "auto",
         meta_input: str = "auto",
         preference_db: Optional[str] = None,
@@ -418,6 +424,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         self.center_bonus = center_bonus
         self.success_bonus = success_bonus
         self.mask_subgoals = mask_subgoals
+        self.break_cycles = bool(break_cycles)
         self.subgoal_learner = subgoal_learner
         self.record_images = record_images
         self.subpolicy_policy = policy if isinstance(policy, str) else "MlpPolicy"
@@ -863,10 +870,12 @@ class HhP(BetweenEpisodes, DoubleDQN):
         episode_start: Optional[np.ndarray] = None,
         deterministic: bool = False,
     ) -> tuple[np.ndarray, Optional[tuple[np.ndarray, ...]]]:
-        """Primitive actions. ``state`` = (current sub-goal per env, primitive steps spent on it), so SB3's
-        ``evaluate_policy`` works unchanged: a new sub-goal is chosen at an episode start, when the
-        current one is reached, or when it gives up after ``max_subgoal_steps`` (a deterministic
-        meta-controller then takes its best *other* sub-goal)."""
+        """Primitive actions. ``state`` = (current sub-goal per env, primitive steps spent on it, digests of the
+        observations the sub-goal's walk was in, the actions taken there), so SB3's ``evaluate_policy`` works
+        unchanged: a new sub-goal is chosen at an episode start, when the current one is reached, or when it gives up
+        after ``max_subgoal_steps`` (a deterministic meta-controller then takes its best *other* sub-goal). With
+        ``break_cycles``, a deterministic walk that comes back to an observation takes the best action it has not
+        taken there yet."""
         obs = self._env_layout(np.asarray(observation))
         vectorized = obs.shape != self.primitive_observation_space.shape
         batch = obs if vectorized else obs[None]
@@ -875,12 +884,17 @@ class HhP(BetweenEpisodes, DoubleDQN):
             goals, steps = np.full(n_envs, -1, dtype=np.int64), np.zeros(n_envs, dtype=np.int64)
         else:
             goals, steps = np.array(state[0], dtype=np.int64), np.array(state[1], dtype=np.int64)
+        walk = int(self.max_subgoal_steps)  # the observations and actions of each env's current walk
+        if state is not None and len(state) >= 4 and np.shape(state[2]) == (n_envs, walk):
+            visited, taken = np.array(state[2], dtype=np.int64), np.array(state[3], dtype=np.int64)
+        else:
+            visited, taken = np.zeros((n_envs, walk), dtype=np.int64), np.full((n_envs, walk), -1, dtype=np.int64)
         if episode_start is not None:
             goals[np.asarray(episode_start, dtype=bool)] = -1
         subgoals = self.subgoals
         if not subgoals:
             actions = np.stack([self.primitive_action_space.sample() for _ in range(n_envs)])
-            return (actions if vectorized else actions[0]), (goals, steps)
+            return (actions if vectorized else actions[0]), (goals, steps, visited, taken)
         renew = []
         for i in range(n_envs):
             goal = goals[i]
@@ -910,9 +924,36 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 chosen[gave_up] = np.where(np.isfinite(q_values).any(axis=1), q_values.argmax(axis=1), allowed.argmax(axis=1))
             goals[renew] = chosen
             steps[renew] = 0
+            visited[renew], taken[renew] = 0, -1  # a new walk
         actions = self.subpolicies.act(goals, batch, deterministic=deterministic)
+        if deterministic and self.break_cycles and isinstance(self.primitive_action_space, spaces.Discrete):
+            here = np.array([int.from_bytes(hashlib.blake2b(o.tobytes(), digest_size=8).digest(), "little", signed=True)
+                             for o in batch], dtype=np.int64)
+            at = np.minimum(steps, walk - 1)  # steps < max_subgoal_steps here: a walk that long gave up above
+            actions = self._off_cycle(goals, batch, actions, (visited == here[:, None]) & (np.arange(walk) < at[:, None]), taken)
+            visited[np.arange(n_envs), at], taken[np.arange(n_envs), at] = here, actions
         steps += 1
-        return (actions if vectorized else actions[0]), (goals, steps)
+        return (actions if vectorized else actions[0]), (goals, steps, visited, taken)
+
+    def _off_cycle(self, goals: np.ndarray, batch: np.ndarray, actions: np.ndarray, seen: np.ndarray,
+                   taken: np.ndarray) -> np.ndarray:
+        """``actions`` with each env whose walk has been in its observation before (``seen``: the steps of its walk
+        it was in it) taking the learner's best action not yet taken there among those the goal space allows (the
+        greedy one again when every allowed action was tried)."""
+        rows = np.flatnonzero(seen.any(axis=1))
+        if not len(rows):
+            return actions
+        with th.no_grad():
+            q = self.subpolicies.q_values(goals[rows], batch[rows]).cpu().numpy().astype(np.float64)
+        allowed = self.subpolicies.allowed_actions(batch[rows])
+        if allowed is not None:
+            q[~np.broadcast_to(allowed, q.shape)] = -np.inf
+        for row, i in enumerate(rows):
+            q[row, taken[i, seen[i]]] = -np.inf  # the actions taken there before
+        untried = np.isfinite(q).any(axis=1)
+        actions = np.array(actions, copy=True)
+        actions[rows[untried]] = q[untried].argmax(axis=1)
+        return actions
 
     # ------------------------------------------------------------------ learning
     def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:

@@ -487,7 +487,7 @@ class StackedDQN:
         """One primitive action per env: sub-goal ``goals[i]``'s learner at ``obs[i]``, epsilon-greedy unless
         ``deterministic``."""
         q = self.q_values(goals, obs)
-        mask = self._mask(obs)
+        mask = self.allowed_actions(obs)
         if mask is not None:
             q = q.masked_fill(~th.as_tensor(mask, device=self.device), -th.inf)
         actions = q.argmax(dim=1).cpu().numpy()
@@ -499,14 +499,14 @@ class StackedDQN:
                 actions[explore] = np.argmax(self._rng.random((int(explore.sum()), mask.shape[-1])) * mask[explore], axis=1)
         return actions
 
-    def _mask(self, obs: np.ndarray) -> Optional[np.ndarray]:
+    def allowed_actions(self, obs: np.ndarray) -> Optional[np.ndarray]:
         """The goal space's mask of primitive actions for a batch of states, boolean (None: every action)."""
         mask = None if self.action_mask is None else self.action_mask(np.asarray(obs))
         return None if mask is None else np.asarray(mask, dtype=bool)
 
     def _allowed(self, obs: np.ndarray) -> Optional[th.Tensor]:
-        """:meth:`_mask` as a tensor on the learners' device."""
-        mask = self._mask(obs)
+        """:meth:`allowed_actions` as a tensor on the learners' device."""
+        mask = self.allowed_actions(obs)
         return None if mask is None else th.as_tensor(mask, device=self.device)
 
     # ------------------------------------------------------------------ learning
