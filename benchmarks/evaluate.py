@@ -68,10 +68,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="a JSON object of HhP.load options to evaluate too (repeatable)")
     parser.add_argument("--deterministic-only", action="store_true",
                         help="only the deterministic policy (long episodes of a task the policy fails cost minutes each)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1, as the runner's runs)")
     parser.add_argument("--out", default=None, help="write the figures as JSON here")
     args = parser.parse_args(argv)
+    import torch as th
+
     from sb3_hhp import HhP
 
+    th.set_num_threads(args.threads)
     register_minigrid_tasks()
     settings = [{}] + list(args.compare)
     modes = ("deterministic",) if args.deterministic_only else ("deterministic", "stochastic")

@@ -159,6 +159,38 @@ def test_a_deterministic_walk_that_comes_back_takes_its_best_untried_action(brea
     assert int(model.predict(seen[4], state=later, deterministic=False)[0]) == 0
 
 
+@pytest.mark.parametrize("break_cycles", [True, False])
+def test_a_deterministic_meta_controller_back_in_a_state_takes_its_best_untried_choice(trained: HhP, break_cycles: bool,
+                                                                                        monkeypatch) -> None:
+    """A greedy meta-controller back in an observation it chose in before in the episode (its sub-goal reached, the
+    env back where it was: a loop of choices) would choose the same again; with ``break_cycles`` it takes its best
+    choosable sub-goal not chosen there yet in this episode, and the best again once all were tried."""
+    monkeypatch.setattr(trained, "break_cycles", break_cycles)
+    monkeypatch.setattr("sb3_hhp.hhp.hhp.option_terminal", lambda space, key, goal, steps, limit: (steps > 0, False))
+    obs, other = observations()[:1], observations()[1:2]
+    with th.no_grad():
+        q_values = trained.q_net(trained.policy.obs_to_tensor(obs)[0]).cpu().numpy()[0, : len(trained.subgoals)]
+    mask = trained.action_mask(obs)
+    choosable = np.ones(len(q_values), dtype=bool) if mask is None else np.broadcast_to(mask, (1, mask.shape[-1]))[0, : len(q_values)]
+    order = [int(g) for g in np.argsort(-np.where(choosable, q_values, -np.inf)) if choosable[g]]
+    assert len(order) >= 2, "the test needs a state with two choosable sub-goals"
+    _, state = trained.predict(obs, episode_start=np.array([True]), deterministic=True)
+    choices = [int(state[0][0])]
+    assert choices[0] == order[0]
+    for _ in range(len(order) + 1):  # each choice reached at once, the env back in the same observation
+        _, state = trained.predict(obs, state=state, episode_start=np.array([False]), deterministic=True)
+        choices.append(int(state[0][0]))
+    if break_cycles:  # every choosable sub-goal once, best first, then the best again
+        assert choices == order + [order[0]] * 2
+    else:
+        assert choices == [order[0]] * (len(order) + 2)
+    # another observation keeps its greedy choice; a new episode forgets the choices
+    _, fresh = trained.predict(other, deterministic=True)
+    assert int(trained.predict(other, state=state, episode_start=np.array([False]), deterministic=True)[1][0][0]) == int(fresh[0][0])
+    _, state = trained.predict(obs, state=state, episode_start=np.array([True]), deterministic=True)
+    assert int(state[0][0]) == order[0]
+
+
 def test_predict_keeps_the_subgoal_until_episode_start_or_give_up(trained: HhP) -> None:
     goal_space = trained.goal_space
     obs = observations()[:1]

@@ -57,6 +57,8 @@ SelfHhP = TypeVar("SelfHhP", bound="HhP")
 
 #: the learners of discrete-action sub-goals (``subgoal_learner``)
 SUBGOAL_LEARNERS = {"heads": SharedHeadsDQN, "stacked": StackedDQN}
+#: the choices of an episode ``predict`` remembers per env with ``break_cycles`` (a loop of choices is a few long)
+CHOICE_MEMORY = 64
 
 #: the zip member of a saved model that holds the components beyond the meta-controller
 COMPONENTS_FILE = "hhp_components.pt"  # not .pth: SB3 loads every .pth member as weights only
@@ -252,11 +254,11 @@ class HhP(BetweenEpisodes, DoubleDQN):
     :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
         calls choosable there (:meth:`~sb3_hhp.goals.GoalSpace.choosable`: not already achieved; on MiniGrid,
         also a milestone); in acting, exploring and the TD target alike (see the README's Design)
-    :param break_cycles: the deterministic policy (``predict(..., deterministic=True)``), discrete actions: a sub-goal
-        learner whose walk comes back to an observation it was in since its sub-goal was chosen takes, there, its best
-        action not yet taken there, where a greedy policy on a deterministic env would go round the same cycle until
-        the sub-goal gives up (see the README's Design); False: plain greedy. Training is unaffected (its learners
-        explore)
+    :param break_cycles: the deterministic policy (``predict(..., deterministic=True)``): where a greedy policy on a
+        deterministic env that comes back to a state goes round the same cycle, the meta-controller back in an
+        observation it chose in before in the episode takes its best choosable sub-goal not chosen there yet, and
+        (discrete actions) a sub-goal learner whose walk comes back to an observation takes its best action not yet
+        taken there (see the README's Design); False: plain greedy. Training is unaffected (it explores)
     :param predictor_input: what the preference predictor reads: "observation", "features" (the goal space's
         compact description of a state, :meth:`~sb3_hhp.goals.GoalSpace.features`) or "auto" (features when the
         goal space has them; see the README's Design)
@@ -870,12 +872,13 @@ class HhP(BetweenEpisodes, DoubleDQN):
         episode_start: Optional[np.ndarray] = None,
         deterministic: bool = False,
     ) -> tuple[np.ndarray, Optional[tuple[np.ndarray, ...]]]:
-        """Primitive actions. ``state`` = (current sub-goal per env, primitive steps spent on it, digests of the
-        observations the sub-goal's walk was in, the actions taken there), so SB3's ``evaluate_policy`` works
-        unchanged: a new sub-goal is chosen at an episode start, when the current one is reached, or when it gives up
-        after ``max_subgoal_steps`` (a deterministic meta-controller then takes its best *other* sub-goal). With
-        ``break_cycles``, a deterministic walk that comes back to an observation takes the best action it has not
-        taken there yet."""
+        """Primitive actions. ``state`` = (current sub-goal per env, primitive steps spent on it, then what
+        ``break_cycles`` remembers: digests of the observations the sub-goal's walk was in and the actions taken there,
+        digests of the observations of the episode's last choices and the sub-goals chosen there, the number of
+        choices), so SB3's ``evaluate_policy`` works unchanged: a new sub-goal is chosen at an episode start, when the
+        current one is reached, or when it gives up after ``max_subgoal_steps`` (a deterministic meta-controller then
+        takes its best *other* sub-goal). With ``break_cycles``, a deterministic policy back in an observation takes
+        the best choice, and the best action, it has not taken there yet."""
         obs = self._env_layout(np.asarray(observation))
         vectorized = obs.shape != self.primitive_observation_space.shape
         batch = obs if vectorized else obs[None]
@@ -884,17 +887,23 @@ class HhP(BetweenEpisodes, DoubleDQN):
             goals, steps = np.full(n_envs, -1, dtype=np.int64), np.zeros(n_envs, dtype=np.int64)
         else:
             goals, steps = np.array(state[0], dtype=np.int64), np.array(state[1], dtype=np.int64)
-        walk = int(self.max_subgoal_steps)  # the observations and actions of each env's current walk
-        if state is not None and len(state) >= 4 and np.shape(state[2]) == (n_envs, walk):
-            visited, taken = np.array(state[2], dtype=np.int64), np.array(state[3], dtype=np.int64)
+        walk = int(self.max_subgoal_steps)
+        shapes = [(n_envs, walk)] * 2 + [(n_envs, CHOICE_MEMORY)] * 2 + [(n_envs,)]
+        if state is not None and len(state) == 7 and all(np.shape(part) == shape for part, shape in zip(state[2:], shapes)):
+            memory = [np.array(part, dtype=np.int64) for part in state[2:]]
         else:
-            visited, taken = np.zeros((n_envs, walk), dtype=np.int64), np.full((n_envs, walk), -1, dtype=np.int64)
+            memory = [np.zeros(shape, dtype=np.int64) for shape in shapes]
+        visited, taken, chosen_at, chosen_goals, n_chosen = memory
         if episode_start is not None:
             goals[np.asarray(episode_start, dtype=bool)] = -1
+            n_chosen[np.asarray(episode_start, dtype=bool)] = 0
         subgoals = self.subgoals
         if not subgoals:
             actions = np.stack([self.primitive_action_space.sample() for _ in range(n_envs)])
-            return (actions if vectorized else actions[0]), (goals, steps, visited, taken)
+            return (actions if vectorized else actions[0]), (goals, steps, *memory)
+        remember = deterministic and self.break_cycles
+        here = np.array([int.from_bytes(hashlib.blake2b(o.tobytes(), digest_size=8).digest(), "little", signed=True)
+                         for o in batch], dtype=np.int64) if remember else None
         renew = []
         for i in range(n_envs):
             goal = goals[i]
@@ -906,34 +915,52 @@ class HhP(BetweenEpisodes, DoubleDQN):
             if gave_up or (achieved and steps[i] > 0):
                 renew.append(i)
         if renew:
+            renew = np.asarray(renew)
             chosen, _ = DoubleDQN.predict(self, batch[renew], deterministic=deterministic)
-            gave_up = [row for row, i in enumerate(renew) if goals[i] >= 0 and steps[i] >= self.max_subgoal_steps]
-            if deterministic and gave_up and len(subgoals) > 1:
-                # a sub-goal that just gave up is not chosen again at once: a greedy meta-controller would
-                # otherwise repeat the same failing choice until the episode ends
-                failed = goals[np.asarray(renew)[gave_up]]
-                with th.no_grad():
-                    q_values = self.q_net(self.policy.obs_to_tensor(batch[np.asarray(renew)[gave_up]])[0]).cpu().numpy()
-                mask = self.action_mask(batch[np.asarray(renew)[gave_up]])
-                if mask is not None:  # one row per state, or one row for all (mask_subgoals=False)
-                    q_values[~np.broadcast_to(mask, q_values.shape)] = -np.inf
-                allowed = np.isfinite(q_values)
-                q_values[np.arange(len(gave_up)), failed] = -np.inf
-                chosen = np.array(chosen, copy=True)
-                # keep the failed sub-goal only when it is the one allowed
-                chosen[gave_up] = np.where(np.isfinite(q_values).any(axis=1), q_values.argmax(axis=1), allowed.argmax(axis=1))
+            if deterministic and len(subgoals) > 1:
+                # not chosen again at once: a sub-goal that just gave up (a greedy meta-controller would repeat the same
+                # failing choice until the episode ends), and with break_cycles any sub-goal chosen before in this
+                # observation in this episode (a greedy policy back in a state goes round the same loop of choices)
+                excluded = np.zeros((len(renew), len(subgoals)), dtype=bool)
+                failed = (goals[renew] >= 0) & (steps[renew] >= self.max_subgoal_steps)
+                excluded[np.flatnonzero(failed), goals[renew][failed]] = True
+                if remember:
+                    known = np.minimum(n_chosen[renew], CHOICE_MEMORY)
+                    same = (chosen_at[renew] == here[renew, None]) & (np.arange(CHOICE_MEMORY) < known[:, None])
+                    rows, columns = np.nonzero(same)
+                    excluded[rows, chosen_goals[renew][rows, columns]] = True
+                chosen = self._other_choices(batch[renew], chosen, excluded)
             goals[renew] = chosen
             steps[renew] = 0
             visited[renew], taken[renew] = 0, -1  # a new walk
+            if remember:
+                slot = n_chosen[renew] % CHOICE_MEMORY
+                chosen_at[renew, slot], chosen_goals[renew, slot] = here[renew], chosen
+                n_chosen[renew] += 1
         actions = self.subpolicies.act(goals, batch, deterministic=deterministic)
-        if deterministic and self.break_cycles and isinstance(self.primitive_action_space, spaces.Discrete):
-            here = np.array([int.from_bytes(hashlib.blake2b(o.tobytes(), digest_size=8).digest(), "little", signed=True)
-                             for o in batch], dtype=np.int64)
+        if remember and isinstance(self.primitive_action_space, spaces.Discrete):
             at = np.minimum(steps, walk - 1)  # steps < max_subgoal_steps here: a walk that long gave up above
             actions = self._off_cycle(goals, batch, actions, (visited == here[:, None]) & (np.arange(walk) < at[:, None]), taken)
             visited[np.arange(n_envs), at], taken[np.arange(n_envs), at] = here, actions
         steps += 1
-        return (actions if vectorized else actions[0]), (goals, steps, visited, taken)
+        return (actions if vectorized else actions[0]), (goals, steps, *memory)
+
+    def _other_choices(self, batch: np.ndarray, chosen: np.ndarray, excluded: np.ndarray) -> np.ndarray:
+        """The greedy meta-controller's choices ``chosen`` in the states ``batch``, where a row of ``excluded`` rules
+        sub-goals out, replaced by its best choosable sub-goal not ruled out (kept where every choosable one is)."""
+        rows = np.flatnonzero(excluded.any(axis=1))
+        if not len(rows):
+            return chosen
+        with th.no_grad():
+            q_values = self.q_net(self.policy.obs_to_tensor(batch[rows])[0]).cpu().numpy()[:, : excluded.shape[1]]
+        mask = self.action_mask(batch[rows])
+        if mask is not None:  # one row per state, or one row for all (mask_subgoals=False)
+            q_values[~np.broadcast_to(mask, (len(rows), mask.shape[-1]))[:, : excluded.shape[1]]] = -np.inf
+        q_values[excluded[rows]] = -np.inf
+        chosen = np.array(chosen, copy=True)
+        left = np.isfinite(q_values).any(axis=1)
+        chosen[rows[left]] = q_values[left].argmax(axis=1)
+        return chosen
 
     def _off_cycle(self, goals: np.ndarray, batch: np.ndarray, actions: np.ndarray, seen: np.ndarray,
                    taken: np.ndarray) -> np.ndarray:
