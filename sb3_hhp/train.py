@@ -254,7 +254,9 @@ def checkpoint_callback_class() -> type:
         :class:`~sb3_hhp.curiosity.VecRNDReward` around its env (an on-policy baseline's curiosity) in
         ``<run folder>/checkpoints/<steps>/``, then ``checkpoint.json`` pointing at them, then the older checkpoints
         removed: a run stopped at any moment keeps a complete checkpoint, which ``--resume`` (HhP) or the benchmark
-        runner (every variant) goes on from.
+        runner (every variant) goes on from. A checkpoint the disk cannot hold is not written (less free space than
+        the last one took, or the disk full while writing it: its files are removed), with a warning: training goes
+        on and the last complete checkpoint stays the one to resume from.
 
         :param save_freq: primitive steps between checkpoints (counted on the model's step count, so a resumed run
             keeps the same checkpoint steps)
@@ -269,12 +271,13 @@ def checkpoint_callback_class() -> type:
                      at_rollout_end: bool = False) -> None:
             super().__init__(verbose)
             self.save_freq, self.save_path = int(save_freq), Path(save_path)
-            self.saved_at = -1
+            self.saved_at = self.complete_at = -1
             self.earlier_seconds, self.start = float(train_seconds), time.perf_counter()
             self.at_rollout_end, self.due = bool(at_rollout_end), False
 
         def _init_callback(self) -> None:
             self.saved_at = self.model.num_timesteps  # a resumed run's checkpoint is its start
+            self.complete_at = self.saved_at  # the last checkpoint written whole
             self.start = time.perf_counter()
 
         def _on_step(self) -> bool:
@@ -296,6 +299,32 @@ def checkpoint_callback_class() -> type:
         def save(self) -> None:
             steps = int(self.model.num_timesteps)
             folder = self.save_path / "checkpoints" / str(steps)
+            last_size = checkpoint_bytes(self.save_path / "checkpoints")  # the last one's files (one at a time)
+            free = shutil.disk_usage(self.save_path).free
+            if free < last_size:
+                self._skip(steps, f"{free / 1e9:.2f} GB free on its disk, the last checkpoint took {last_size / 1e9:.2f} GB")
+                return
+            try:
+                files = self._write(folder, steps)
+            except OSError as error:  # the disk full while writing: the files written so far go
+                shutil.rmtree(folder, ignore_errors=True)
+                self._skip(steps, str(error))
+                return
+            pointer = self.save_path / CHECKPOINT_FILE
+            temporary = pointer.with_suffix(".json.tmp")
+            seconds = round(self.earlier_seconds + time.perf_counter() - self.start, 1)
+            temporary.write_text(json.dumps({"timesteps": steps, **files, "train_seconds": seconds}) + "\n")
+            os.replace(temporary, pointer)
+            for older in (self.save_path / "checkpoints").iterdir():
+                if older.name != str(steps):
+                    shutil.rmtree(older, ignore_errors=True)
+            self.saved_at = self.complete_at = steps
+            self.due = False
+            if self.verbose:
+                print(f"Checkpoint at {steps} steps: {folder}")
+
+        def _write(self, folder: Path, steps: int) -> dict[str, str]:
+            """The checkpoint's files (model, replays, curiosity state) in ``folder``; their paths for the pointer."""
             folder.mkdir(parents=True, exist_ok=True)
             files = {"model": f"checkpoints/{steps}/model.zip"}
             self.model.save(folder / "model.zip")
@@ -308,19 +337,23 @@ def checkpoint_callback_class() -> type:
 
                 th.save(curiosity.state_dict(), folder / "vec_rnd.pt")
                 files["vec_rnd"] = f"checkpoints/{steps}/vec_rnd.pt"
-            pointer = self.save_path / CHECKPOINT_FILE
-            temporary = pointer.with_suffix(".json.tmp")
-            seconds = round(self.earlier_seconds + time.perf_counter() - self.start, 1)
-            temporary.write_text(json.dumps({"timesteps": steps, **files, "train_seconds": seconds}) + "\n")
-            os.replace(temporary, pointer)
-            for older in (self.save_path / "checkpoints").iterdir():
-                if older.name != str(steps):
-                    shutil.rmtree(older, ignore_errors=True)
+            return files
+
+        def _skip(self, steps: int, why: str) -> None:
+            """No checkpoint at ``steps`` (the disk cannot hold it): say so, and train on to the next one."""
+            last = (f"the last complete checkpoint ({self.complete_at} steps) stays the one to resume from"
+                    if self.complete_at > 0 else "there is no complete checkpoint to resume from yet")
+            warnings.warn(f"No checkpoint at {steps} steps in {self.save_path} ({why}): training goes on; {last}. "
+                          "Free disk space to have checkpoints again.", stacklevel=2)
             self.saved_at, self.due = steps, False
-            if self.verbose:
-                print(f"Checkpoint at {steps} steps: {folder}")
 
     return LatestCheckpoint
+
+
+def checkpoint_bytes(folder: Path) -> int:
+    """The bytes the files under ``folder`` take (0 where there is none): a run's checkpoints."""
+    folder = Path(folder)
+    return sum(path.stat().st_size for path in folder.rglob("*") if path.is_file()) if folder.is_dir() else 0
 
 
 def vec_rnd_of(env: Any) -> Any:

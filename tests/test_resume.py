@@ -154,3 +154,42 @@ def test_a_run_goes_on_from_its_checkpoint(tmp_path):
 
     missing = _cli(*common, "-n", "4000", "--resume", str(tmp_path), cwd=tmp_path)
     assert missing.returncode == 2 and "has no checkpoint.json" in missing.stderr and "--checkpoint-freq" in missing.stderr
+
+
+def test_a_checkpoint_the_disk_cannot_hold_is_skipped_and_training_goes_on(trained, tmp_path, monkeypatch):
+    """Disk full while a checkpoint is written: its partial files go, the pointer keeps the last complete checkpoint,
+    a warning says so and training is not stopped; with less free space than the last checkpoint took, the next one is
+    not even begun. Nothing already saved is lost."""
+    import shutil
+
+    from sb3_hhp.train import checkpoint_callback_class, read_checkpoint
+
+    model, _ = trained
+    callback = checkpoint_callback_class()(save_freq=100, save_path=str(tmp_path))
+    callback.init_callback(model)
+    callback.save()  # a complete checkpoint at the model's step count
+    first = read_checkpoint(str(tmp_path))
+    assert first["timesteps"] == model.num_timesteps and os.path.isfile(first["replay"])
+    size = sum(path.stat().st_size for path in (tmp_path / "checkpoints").rglob("*") if path.is_file())
+
+    def disk_full(path, *args, **kwargs):
+        Path(path).write_bytes(b"partial")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(model, "save_replay_buffer", disk_full)
+    monkeypatch.setattr(model, "num_timesteps", first["timesteps"] + 100)
+    with pytest.warns(UserWarning, match=rf"No checkpoint at {first['timesteps'] + 100} steps .*No space left.*"
+                                         rf"last complete checkpoint \({first['timesteps']} steps\)"):
+        callback.save()
+    assert read_checkpoint(str(tmp_path)) == first  # the pointer and its files as they were
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [str(first["timesteps"])]
+    # less free space than the last checkpoint took: not begun
+    monkeypatch.undo()
+    free = shutil.disk_usage(tmp_path)._replace(free=size - 1)
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: free)
+    monkeypatch.setattr(model, "num_timesteps", first["timesteps"] + 200)
+    with pytest.warns(UserWarning, match="GB free on its disk, the last checkpoint took"):
+        callback.save()
+    assert read_checkpoint(str(tmp_path)) == first
+    assert not (tmp_path / "checkpoints" / str(first["timesteps"] + 200)).exists()
+    assert callback.saved_at == first["timesteps"] + 200  # not tried again at every step until the next one is due
