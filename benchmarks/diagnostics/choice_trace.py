@@ -72,11 +72,13 @@ def main() -> None:
     parser.add_argument("--stochastic", action="store_true", help="the stochastic policy (default: deterministic)")
     parser.add_argument("--show", type=int, default=3, help="episodes printed choice by choice")
     parser.add_argument("--out", default=None, help="write every episode's choices as JSON here")
+    parser.add_argument("--load-options", type=json.loads, default={},
+                        help="HhP.load options as a JSON object, e.g. '{\"break_cycles\": false}' (plain greedy)")
     args = parser.parse_args()
     path = pathlib.Path(args.model)
     model_path = str(path) if path.suffix == ".zip" else newest_checkpoint(str(path))[0]
     register_minigrid_tasks()
-    model = HhP.load(model_path, device="cpu")
+    model = HhP.load(model_path, device="cpu", **args.load_options)
     env = wrap_env(gym.make(args.env))
     episodes = [trace_episode(model, env, args.seed + i, not args.stochastic) for i in range(args.episodes)]
     for episode in episodes[: args.show]:
