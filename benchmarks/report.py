@@ -225,6 +225,21 @@ def plot_curves(results: pd.DataFrame, folder: Path, unfinished: Optional[pd.Dat
     return written
 
 
+def greedy_rows(results: pd.DataFrame, folder: Path) -> list[str]:
+    """The HhP runs whose deterministic figure is plain greedy: their summary (``runs/<run>.json``) predates
+    ``break_cycles`` or says it was off. Rows of other variants, or without a summary, are not named."""
+    import json
+
+    named = []
+    for row in results.itertuples(index=False):
+        summary = getattr(row, "summary", None)
+        if not str(row.variant).startswith("hhp") or not isinstance(summary, str) or not (folder / summary).is_file():
+            continue
+        if not json.loads((folder / summary).read_text()).get("break_cycles", False):
+            named.append(f"{row.env} {variant_name(str(row.variant))} seed {int(row.seed)}")
+    return named
+
+
 def report(csv_path: Path) -> tuple[str, Path, list[Path]]:
     """Write ``benchmark.md`` and the plots next to ``csv_path``.
 
@@ -241,6 +256,11 @@ def report(csv_path: Path) -> tuple[str, Path, list[Path]]:
         "episodes (seeds seed + 10000, ...) solved by the deterministic and by the stochastic policy. Labels: "
         "preference queries answered (HhP only). Wall time: training and evaluation of one run.\n"
     )
+    greedy = greedy_rows(results, csv_path.parent)
+    if greedy:
+        note += ("\nHhP's deterministic policy breaks its cycles (`break_cycles`, the default) except in these runs, "
+                 "evaluated plain greedy before it existed (`benchmarks/evaluate.py` evaluates them again): "
+                 + "; ".join(greedy) + ".\n")
     markdown = csv_path.parent / "benchmark.md"
     unfinished = unfinished_runs(results, csv_path.parent)
     plots = plot_curves(results, csv_path.parent, unfinished)

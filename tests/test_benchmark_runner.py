@@ -261,6 +261,29 @@ def test_report_table_and_plots(tmp_path):
     assert [plot.name for plot in plots] == ["curves_MiniGrid-DoorKey-8x8-v0.png"]
     assert plots[0].stat().st_size > 1000
     assert plots[0].name in markdown.read_text()
+    assert "plain greedy" not in markdown.read_text()  # no summaries: nothing to say
+
+
+def test_report_names_hhp_runs_evaluated_plain_greedy(tmp_path):
+    """A run evaluated before ``break_cycles`` existed (no key in its summary) or with it off is named under the table,
+    so a mean over seeds evaluated both ways is not taken for one policy's."""
+    import json
+
+    csv_path = synthetic_results(tmp_path)
+    results = pd.read_csv(csv_path)
+    (tmp_path / "runs").mkdir()
+    summaries = {0: {"env": "x"}, 1: {"break_cycles": True}}
+    results["summary"] = None
+    for index, row in results.iterrows():
+        path = f"runs/{row.variant}_s{row.seed}.json"
+        (tmp_path / path).write_text(json.dumps(summaries[int(row.seed)]))
+        results.loc[index, "summary"] = path
+    results.to_csv(csv_path, index=False)
+    _, markdown, _ = report.report(csv_path)
+    text = markdown.read_text()
+    assert "except in these runs, evaluated plain greedy" in text
+    assert "MiniGrid-DoorKey-8x8-v0 HhP seed 0" in text
+    assert "HhP seed 1" not in text and "PPO seed" not in text  # breaking cycles; a baseline has no such policy
 
 
 def write_evaluations(path: Path, steps: list, returns: list) -> None:
