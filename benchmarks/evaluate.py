@@ -22,13 +22,15 @@ import time
 from typing import Any
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+from benchmarks.run import latest_checkpoint  # noqa: E402
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
-from sb3_hhp.train import eval_seeds, evaluate  # noqa: E402
+from sb3_hhp.train import eval_seeds, evaluate, read_checkpoint  # noqa: E402
 
 
 def model_file(path: str, env_id: str) -> pathlib.Path:
     """A model ``.zip`` as given, or the newest ``<env id>.zip`` a run saved under a log folder (its final model), or,
-    where the run has not ended, its newest checkpoint's model."""
+    where the run has not ended, the model of its newest complete checkpoint (the one its ``checkpoint.json`` points at,
+    as the runner resumes)."""
     given = pathlib.Path(path)
     if given.suffix == ".zip":
         if not given.is_file():
@@ -37,10 +39,10 @@ def model_file(path: str, env_id: str) -> pathlib.Path:
     finals = sorted(given.rglob(f"{env_id}.zip"), key=lambda found: found.stat().st_mtime)
     if finals:
         return finals[-1]
-    checkpoints = sorted(given.rglob("checkpoints/*/model.zip"), key=lambda found: found.stat().st_mtime)
-    if checkpoints:
-        return checkpoints[-1]
-    raise SystemExit(f"{given} holds no model: give a model .zip or a run's log folder")
+    run_folder = latest_checkpoint(given)  # complete checkpoints only
+    if run_folder is None:
+        raise SystemExit(f"{given} holds no model: give a model .zip or a run's log folder")
+    return pathlib.Path(read_checkpoint(str(run_folder))["model"])
 
 
 def success_rates(model: Any, env_id: str, seed: int, episodes: int, modes: tuple[str, ...]) -> dict[str, float]:

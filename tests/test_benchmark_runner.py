@@ -535,6 +535,7 @@ def test_the_evaluation_script_replays_a_runs_episodes_with_load_options(tmp_pat
     (run / "checkpoints" / "100").mkdir(parents=True)
     model = HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0"), seed=0, buffer_size=1000, learning_starts=10)
     model.save(run / "checkpoints" / "100" / "model.zip")
+    (run / "checkpoint.json").write_text('{"timesteps": 100, "model": "checkpoints/100/model.zip"}')  # as runs write it
     assert script.model_file(str(run), "MiniGrid-Empty-5x5-v0") == run / "checkpoints" / "100" / "model.zip"
     model.save(run / "hhp" / "MiniGrid-Empty-5x5-v0_1" / "MiniGrid-Empty-5x5-v0.zip")
     final = run / "hhp" / "MiniGrid-Empty-5x5-v0_1" / "MiniGrid-Empty-5x5-v0.zip"

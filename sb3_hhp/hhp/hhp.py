@@ -60,6 +60,12 @@ SUBGOAL_LEARNERS = {"heads": SharedHeadsDQN, "stacked": StackedDQN}
 #: the choices of an episode ``predict`` remembers per env with ``break_cycles`` (a loop of choices is a few long)
 CHOICE_MEMORY = 64
 
+
+def observation_digests(batch: np.ndarray) -> list[bytes]:
+    """A 16-byte digest (blake2b) of each observation of a batch: how the masks' cache and the deterministic policy's
+    memory of visited states tell observations apart without keeping them."""
+    return [hashlib.blake2b(obs.tobytes(), digest_size=16).digest() for obs in batch]
+
 #: the zip member of a saved model that holds the components beyond the meta-controller
 COMPONENTS_FILE = "hhp_components.pt"  # not .pth: SB3 loads every .pth member as weights only
 REPLAY_FORMAT = "sb3_hhp.HhP.replay"  # the file of HhP.save_replay_buffer
@@ -654,7 +660,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         batch = self._env_layout(np.asarray(observations)).astype(self.primitive_observation_space.dtype, copy=False)
         goal_keys = [goal.key for goal in self.subgoals]
         rows = np.empty((len(batch), len(valid)), dtype=bool)
-        digests = [hashlib.blake2b(obs.tobytes(), digest_size=16).digest() for obs in batch]  # 16 bytes, not 6.6 KB (47x47x3)
+        digests = observation_digests(batch)  # 16 bytes, not 6.6 KB (47x47x3)
         unseen = {digest: i for i, digest in enumerate(digests) if digest not in self._present_cache}
         if unseen:  # key and present of a state, reused whenever the same observation recurs; new ones in one batch
             if len(self._present_cache) + len(unseen) > self.present_cache_size:
@@ -902,8 +908,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
             actions = np.stack([self.primitive_action_space.sample() for _ in range(n_envs)])
             return (actions if vectorized else actions[0]), (goals, steps, *memory)
         remember = deterministic and self.break_cycles
-        here = np.array([int.from_bytes(hashlib.blake2b(o.tobytes(), digest_size=8).digest(), "little", signed=True)
-                         for o in batch], dtype=np.int64) if remember else None
+        here = np.array([int.from_bytes(digest[:8], "little", signed=True) for digest in observation_digests(batch)],
+                        dtype=np.int64) if remember else None
         renew = []
         for i in range(n_envs):
             goal = goals[i]
@@ -937,11 +943,16 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 slot = n_chosen[renew] % CHOICE_MEMORY
                 chosen_at[renew, slot], chosen_goals[renew, slot] = here[renew], chosen
                 n_chosen[renew] += 1
-        actions = self.subpolicies.act(goals, batch, deterministic=deterministic)
         if remember and isinstance(self.primitive_action_space, spaces.Discrete):
+            # a walk back in an observation passes over the actions it took there before
             at = np.minimum(steps, walk - 1)  # steps < max_subgoal_steps here: a walk that long gave up above
-            actions = self._off_cycle(goals, batch, actions, (visited == here[:, None]) & (np.arange(walk) < at[:, None]), taken)
+            rows, columns = np.nonzero((visited == here[:, None]) & (np.arange(walk) < at[:, None]))
+            avoid = np.zeros((n_envs, int(self.primitive_action_space.n)), dtype=bool)
+            avoid[rows, taken[rows, columns]] = True
+            actions = self.subpolicies.act(goals, batch, deterministic=True, avoid=avoid)
             visited[np.arange(n_envs), at], taken[np.arange(n_envs), at] = here, actions
+        else:
+            actions = self.subpolicies.act(goals, batch, deterministic=deterministic)
         steps += 1
         return (actions if vectorized else actions[0]), (goals, steps, *memory)
 
@@ -961,26 +972,6 @@ class HhP(BetweenEpisodes, DoubleDQN):
         left = np.isfinite(q_values).any(axis=1)
         chosen[rows[left]] = q_values[left].argmax(axis=1)
         return chosen
-
-    def _off_cycle(self, goals: np.ndarray, batch: np.ndarray, actions: np.ndarray, seen: np.ndarray,
-                   taken: np.ndarray) -> np.ndarray:
-        """``actions`` with each env whose walk has been in its observation before (``seen``: the steps of its walk
-        it was in it) taking the learner's best action not yet taken there among those the goal space allows (the
-        greedy one again when every allowed action was tried)."""
-        rows = np.flatnonzero(seen.any(axis=1))
-        if not len(rows):
-            return actions
-        with th.no_grad():
-            q = self.subpolicies.q_values(goals[rows], batch[rows]).cpu().numpy().astype(np.float64)
-        allowed = self.subpolicies.allowed_actions(batch[rows])
-        if allowed is not None:
-            q[~np.broadcast_to(allowed, q.shape)] = -np.inf
-        for row, i in enumerate(rows):
-            q[row, taken[i, seen[i]]] = -np.inf  # the actions taken there before
-        untried = np.isfinite(q).any(axis=1)
-        actions = np.array(actions, copy=True)
-        actions[rows[untried]] = q[untried].argmax(axis=1)
-        return actions
 
     # ------------------------------------------------------------------ learning
     def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:

@@ -483,13 +483,18 @@ class StackedDQN:
             q = self._vq(self._take(self.params, self._rows(distinct)), obs_t.unsqueeze(0).expand(len(distinct), *obs_t.shape))  # (U, n, A)
             return q[th.as_tensor(inverse.reshape(-1), device=self.device), th.arange(len(goals), device=self.device)]
 
-    def act(self, goals: np.ndarray, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+    def act(self, goals: np.ndarray, obs: np.ndarray, deterministic: bool = False,
+            avoid: Optional[np.ndarray] = None) -> np.ndarray:
         """One primitive action per env: sub-goal ``goals[i]``'s learner at ``obs[i]``, epsilon-greedy unless
-        ``deterministic``."""
+        ``deterministic``; ``avoid`` ``(n, A)``: actions the greedy choice passes over where another allowed action is
+        left (the deterministic policy breaking a cycle, :meth:`HhP.predict`)."""
         q = self.q_values(goals, obs)
         mask = self.allowed_actions(obs)
         if mask is not None:
             q = q.masked_fill(~th.as_tensor(mask, device=self.device), -th.inf)
+        if avoid is not None and avoid.any():
+            rest = q.masked_fill(th.as_tensor(avoid, device=self.device), -th.inf)
+            q = th.where(th.isfinite(rest).any(dim=1, keepdim=True), rest, q)
         actions = q.argmax(dim=1).cpu().numpy()
         if not deterministic:
             explore = self._rng.random(len(actions)) < np.array([self.exploration_rate(int(g)) for g in goals])
