@@ -11,7 +11,9 @@ trained model acts is measured on the very episodes the runs reported:
         --compare '{"break_cycles": false}' --out benchmarks/results/minigrid_tasks/break_cycles.json
 
 Each model is ``SEED=PATH``: a model ``.zip``, or a run's log folder (the newest final model in it, else its newest
-checkpoint). Needs nothing beyond the package.
+checkpoint). Needs nothing beyond the package. Written into a sweep's folder (next to its ``results.csv``), the file's
+deterministic figures with cycles broken replace, in ``report.py``'s table, those of runs the runner evaluated plain
+greedy.
 """
 
 import argparse
@@ -91,7 +93,8 @@ def main(argv: list[str] | None = None) -> int:
             start = time.perf_counter()
             model = HhP.load(file, device="cpu", **options)
             rates = success_rates(model, args.env, int(seed_text), args.episodes, modes)
-            rows.append({"seed": int(seed_text), "model": str(file), "load_options": options, **rates,
+            rows.append({"seed": int(seed_text), "model": str(file), "load_options": options,
+                         "break_cycles": bool(model.break_cycles), **rates,
                          "seconds": round(time.perf_counter() - start, 1)})
             print(f"seed {seed_text} {json.dumps(options) if options else '(as saved)'}: success "
                   + ", ".join(f"{rates[mode]:.2f} {mode}" for mode in modes), flush=True)

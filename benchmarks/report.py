@@ -14,6 +14,8 @@ Needs the ``plots`` extra (pandas, matplotlib).
 """
 
 import argparse
+import json
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -32,6 +34,8 @@ except ImportError:  # run as a script, python benchmarks/report.py: the reposit
 VARIANT_NAMES = {"hhp": "HhP", "dqn": "DQN", "ppo": "PPO", "ppo_rnd": "PPO + RND"}
 #: columns a results file must have
 REQUIRED_COLUMNS = ("env", "variant", "seed", "steps", "success_det", "success_stoch", "labels_used", "wall_seconds")
+#: a run's name (its log folder): ``<env>__<variant>__s<seed>``
+RUN_NAME = re.compile(r".+__.+__s\d+")
 #: points of the common step grid the seeds' curves are interpolated onto
 CURVE_GRID_POINTS = 100
 
@@ -225,19 +229,83 @@ def plot_curves(results: pd.DataFrame, folder: Path, unfinished: Optional[pd.Dat
     return written
 
 
-def greedy_rows(results: pd.DataFrame, folder: Path) -> list[str]:
+def greedy_rows(results: pd.DataFrame, folder: Path) -> list[tuple[int, str, str]]:
     """The HhP runs whose deterministic figure is plain greedy: their summary (``runs/<run>.json``) predates
-    ``break_cycles`` or says it was off. Rows of other variants, or without a summary, are not named."""
-    import json
+    ``break_cycles`` or says it was off. Rows of other variants, or without a summary, are not named.
 
+    :return: per such run: its row's index in ``results``, its name in the tables, its run name (its log folder's)
+    """
     named = []
-    for row in results.itertuples(index=False):
+    for index, row in zip(results.index, results.itertuples(index=False)):
         summary = getattr(row, "summary", None)
         if not str(row.variant).startswith("hhp") or not isinstance(summary, str) or not (folder / summary).is_file():
             continue
         if not json.loads((folder / summary).read_text()).get("break_cycles", False):
-            named.append(f"{row.env} {variant_name(str(row.variant))} seed {int(row.seed)}")
+            run = Experiment(row.env, row.variant, int(row.seed), int(row.steps)).name
+            named.append((index, f"{row.env} {variant_name(str(row.variant))} seed {int(row.seed)}", run))
     return named
+
+
+def reevaluations(folder: Path) -> dict[str, list[dict]]:
+    """The runs that ``benchmarks/evaluate.py`` evaluated again with cycles broken: the JSON files it wrote into
+    ``folder`` (``{"env", "episodes", "runs": [...]}``, or the rows under ``"variants"``), by run name (the log folder in each model's path). A figure
+    counts where its row records ``break_cycles`` true, or, in files written before rows recorded it, where no load
+    option turned it off (models saved before ``break_cycles`` existed load with it on); files in order of name.
+
+    :return: run name -> its figures, each ``success`` (deterministic), ``episodes``, ``file`` (its name)
+    """
+    found: dict[str, list[dict]] = {}
+    for path in sorted(folder.glob("*.json")):
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if not isinstance(data, dict):
+            continue
+        rows = data.get("runs")
+        if rows is None and isinstance(data.get("variants"), dict):  # one list per variant
+            rows = [row for variant in data["variants"].values() if isinstance(variant, list) for row in variant]
+        for row in rows if isinstance(rows, list) else []:
+            if not isinstance(row, dict) or "deterministic" not in row:
+                continue
+            options = row.get("load_options") or {}
+            if not row.get("break_cycles", options.get("break_cycles", True)):
+                continue
+            run = next((part for part in Path(str(row.get("model", ""))).parts if RUN_NAME.fullmatch(part)), None)
+            if run is not None:
+                found.setdefault(run, []).append(
+                    {"success": float(row["deterministic"]), "episodes": data.get("episodes"), "file": path.name})
+    return found
+
+
+def break_cycles_note(results: pd.DataFrame, folder: Path) -> tuple[pd.DataFrame, str]:
+    """The rows with the deterministic figures of plain greedy HhP runs replaced by their :func:`reevaluations` on the
+    same episodes (as many, the same seeds), and the note under the table that says which and what they were."""
+    greedy = greedy_rows(results, folder)
+    if not greedy:
+        return results, ""
+    again = reevaluations(folder)
+    results = results.copy()
+    replaced, kept = [], []
+    for index, name, run in greedy:
+        episodes = results.loc[index, "eval_episodes"] if "eval_episodes" in results else None
+        same = [figure for figure in again.get(run, []) if episodes is None or pd.isna(episodes)
+                or figure["episodes"] is None or int(figure["episodes"]) == int(episodes)]
+        if not same:  # never evaluated again, or on other episodes than the runner's
+            kept.append(name)
+            continue
+        figure = same[0]
+        plain = float(results.loc[index, "success_det"])
+        results.loc[index, "success_det"] = figure["success"]
+        replaced.append(f"{name} ({figure['success']:.2f}; plain greedy {plain:.2f}; `{figure['file']}`)")
+    note = "\nHhP's deterministic policy breaks its cycles (`break_cycles`, the default)."
+    if replaced:
+        note += (" These runs were evaluated plain greedy by the runner, before it existed, and again with it on the "
+                 "same episodes by `benchmarks/evaluate.py`, whose figures the table shows: " + "; ".join(replaced) + ".")
+    if kept:
+        note += (" These runs were evaluated plain greedy only (their models not evaluated again), and the table shows "
+                 "that: " + "; ".join(kept) + ".")
+    return results, note + "\n"
 
 
 def report(csv_path: Path) -> tuple[str, Path, list[Path]]:
@@ -249,6 +317,7 @@ def report(csv_path: Path) -> tuple[str, Path, list[Path]]:
         results = read_results(csv_path)
     else:  # a sweep whose runs are all still training
         results = pd.DataFrame(columns=[*REQUIRED_COLUMNS, "curve", "eval_episodes"])
+    results, cycles_note = break_cycles_note(results, csv_path.parent)
     table = markdown_table(results)
     episodes = sorted(int(value) for value in results["eval_episodes"].dropna().unique()) if "eval_episodes" in results else []
     note = (
@@ -256,11 +325,7 @@ def report(csv_path: Path) -> tuple[str, Path, list[Path]]:
         "episodes (seeds seed + 10000, ...) solved by the deterministic and by the stochastic policy. Labels: "
         "preference queries answered (HhP only). Wall time: training and evaluation of one run.\n"
     )
-    greedy = greedy_rows(results, csv_path.parent)
-    if greedy:
-        note += ("\nHhP's deterministic policy breaks its cycles (`break_cycles`, the default) except in these runs, "
-                 "evaluated plain greedy before it existed (`benchmarks/evaluate.py` evaluates them again): "
-                 + "; ".join(greedy) + ".\n")
+    note += cycles_note
     markdown = csv_path.parent / "benchmark.md"
     unfinished = unfinished_runs(results, csv_path.parent)
     plots = plot_curves(results, csv_path.parent, unfinished)

@@ -279,11 +279,32 @@ def test_report_names_hhp_runs_evaluated_plain_greedy(tmp_path):
         (tmp_path / path).write_text(json.dumps(summaries[int(row.seed)]))
         results.loc[index, "summary"] = path
     results.to_csv(csv_path, index=False)
-    _, markdown, _ = report.report(csv_path)
+    table, markdown, _ = report.report(csv_path)
     text = markdown.read_text()
-    assert "except in these runs, evaluated plain greedy" in text
+    assert "evaluated plain greedy only" in text
     assert "MiniGrid-DoorKey-8x8-v0 HhP seed 0" in text
     assert "HhP seed 1" not in text and "PPO seed" not in text  # breaking cycles; a baseline has no such policy
+    assert "| HhP | 2 | 1,000 | 0.95 ± 0.07 |" in table  # the runner's figures, as written
+
+    # evaluate.py's figures for seed 0 on the runner's episodes replace its plain greedy one; those with cycles not
+    # broken, on other episodes, or of other runs do not
+    model = "logs/{}/hhp/MiniGrid-DoorKey-8x8-v0_1/MiniGrid-DoorKey-8x8-v0.zip"
+    hhp0, ppo0 = "MiniGrid-DoorKey-8x8-v0__hhp__s0", "MiniGrid-DoorKey-8x8-v0__ppo__s0"
+    (tmp_path / "a_other_episodes.json").write_text(json.dumps({"env": "x", "episodes": 20, "runs": [
+        {"seed": 0, "model": model.format(hhp0), "load_options": {}, "deterministic": 0.10}]}))
+    (tmp_path / "b_cycles.json").write_text(json.dumps({"env": "x", "episodes": 100, "runs": [
+        {"seed": 0, "model": model.format(hhp0), "load_options": {"break_cycles": False}, "deterministic": 0.90},
+        {"seed": 0, "model": model.format(hhp0), "load_options": {}, "break_cycles": False, "deterministic": 0.30},
+        {"seed": 0, "model": model.format(ppo0), "load_options": {}, "deterministic": 0.70}]}))
+    (tmp_path / "c_variants.json").write_text(json.dumps({"env": "x", "episodes": 100, "variants": {"hhp": [
+        {"seed": 0, "model": model.format(hhp0), "load_options": {}, "deterministic": 0.96}]}}))  # rows by variant
+    table, markdown, _ = report.report(csv_path)
+    text = markdown.read_text()
+    assert "| HhP | 2 | 1,000 | 0.98 ± 0.03 |" in table  # 0.96 and 1.00
+    assert "| PPO | 2 | 1,000 | 0.30 ± 0.14 |" in table
+    assert "MiniGrid-DoorKey-8x8-v0 HhP seed 0 (0.96; plain greedy 0.90; `c_variants.json`)" in text
+    assert "plain greedy only" not in text
+    assert pd.read_csv(csv_path)["success_det"].tolist() == [0.2, 0.4, 0.9, 1.0]  # the results file is left as written
 
 
 def write_evaluations(path: Path, steps: list, returns: list) -> None:
@@ -555,6 +576,7 @@ def test_the_evaluation_script_replays_a_runs_episodes_with_load_options(tmp_pat
     runs = pd.read_json(out, typ="series")["runs"]
     assert [(row["load_options"], row["deterministic"], row["stochastic"]) for row in runs] == [
         ({}, 1.0, 1.0), ({"break_cycles": False}, 0.0, 0.0)]
+    assert [row["break_cycles"] for row in runs] == [True, False]  # what report.py reads: the policy each row measured
     assert all(row["model"] == str(final) and row["seed"] == 3 for row in runs)
     calls.clear()
     script.main(["MiniGrid-Empty-5x5-v0", f"3={final}", "--episodes", "2", "--deterministic-only"])
