@@ -122,20 +122,23 @@ def test_predict_single_and_vectorised(trained: HhP) -> None:
     assert trained.valid_actions[goals].all()
 
 
+@pytest.mark.parametrize("deterministic", [True, False])
 @pytest.mark.parametrize("break_cycles", [True, False])
-def test_a_deterministic_walk_that_comes_back_takes_its_best_untried_action(break_cycles: bool, monkeypatch) -> None:
+def test_a_walk_that_comes_back_takes_its_best_untried_action(break_cycles: bool, deterministic: bool, monkeypatch) -> None:
     """A greedy learner on a deterministic env that comes back to an observation would go round the same cycle until
-    its sub-goal gave up; with ``break_cycles`` it takes there its best action not yet taken there (in this walk)."""
+    its sub-goal gave up; with ``break_cycles`` it takes there its best action not yet taken there (in this walk). The
+    stochastic policy is that policy with epsilon-random actions (epsilon 0 here: the same actions)."""
     env = wrap_env(gym.make(DOORKEY))
     obs, _ = env.reset(seed=0)
     model = make_model(discovery="none", subgoals=[obs], break_cycles=break_cycles)
     q_row = np.array([3.0, 1.0, 2.0, 0.5, 0.4, 0.3, 0.2])  # greedy: turn left, round and round in one cell
     monkeypatch.setattr(model.subpolicies, "q_values", lambda goals, batch: th.as_tensor(np.tile(q_row, (len(goals), 1))))
     monkeypatch.setattr(model.subpolicies, "allowed_actions", lambda batch: None)
+    monkeypatch.setattr(model.subpolicies, "exploration_rate", lambda goal: 0.0)
     monkeypatch.setattr("sb3_hhp.hhp.hhp.option_terminal", lambda space, key, goal, steps, limit: (False, steps >= limit))
     state, seen, actions = None, [], []
     for t in range(16):
-        action, state = model.predict(obs, state=state, episode_start=np.array([t == 0]), deterministic=True)
+        action, state = model.predict(obs, state=state, episode_start=np.array([t == 0]), deterministic=deterministic)
         assert state[0][0] == 0 and state[1][0] == t + 1  # one walk, never renewed
         before = [a for o, a in zip(seen, actions) if np.array_equal(o, obs)]
         untried = [a for a in np.argsort(-q_row) if a not in before]
@@ -151,21 +154,28 @@ def test_a_deterministic_walk_that_comes_back_takes_its_best_untried_action(brea
     # the walk's memory is dropped with the walk: a new episode starts greedy again
     action, state = model.predict(seen[4], state=state, episode_start=np.array([True]), deterministic=True)
     assert int(action) == 0 and state[1][0] == 1
-    # back in that observation later in the walk: the deterministic policy breaks the cycle, the stochastic one is left
-    # as it is (its learners explore; none here)
+    # back in that observation later in the walk: both policies break the cycle (epsilon 0)
     later = (np.array([0]), np.array([5]), *state[2:])
     assert int(model.predict(seen[4], state=later, deterministic=True)[0]) == (2 if break_cycles else 0)
-    monkeypatch.setattr(model.subpolicies, "exploration_rate", lambda goal: 0.0)
-    assert int(model.predict(seen[4], state=later, deterministic=False)[0]) == 0
+    assert int(model.predict(seen[4], state=later, deterministic=False)[0]) == (2 if break_cycles else 0)
+    # epsilon 1: the stochastic policy's actions are random, whatever it remembers
+    monkeypatch.setattr(model.subpolicies, "exploration_rate", lambda goal: 1.0)
+    drawn = {int(model.predict(seen[4], state=later, deterministic=False)[0]) for _ in range(60)}
+    assert len(drawn) >= 4
 
 
+@pytest.mark.parametrize("deterministic", [True, False])
 @pytest.mark.parametrize("break_cycles", [True, False])
-def test_a_deterministic_meta_controller_back_in_a_state_takes_its_best_untried_choice(trained: HhP, break_cycles: bool,
-                                                                                        monkeypatch) -> None:
+def test_a_meta_controller_back_in_a_state_takes_its_best_untried_choice(trained: HhP, break_cycles: bool,
+                                                                         deterministic: bool, monkeypatch) -> None:
     """A greedy meta-controller back in an observation it chose in before in the episode (its sub-goal reached, the
     env back where it was: a loop of choices) would choose the same again; with ``break_cycles`` it takes its best
-    choosable sub-goal not chosen there yet in this episode, and the best again once all were tried."""
+    choosable sub-goal not chosen there yet in this episode, and the best again once all were tried. The stochastic
+    policy is that policy with epsilon-random choices (epsilon 0 here: the same choices; 1: random choosable ones)."""
     monkeypatch.setattr(trained, "break_cycles", break_cycles)
+    monkeypatch.setattr(trained, "exploration_rate", 0.0)
+    # every existing sub-goal choosable everywhere: the test is of the rule, whatever the goal space would mask
+    monkeypatch.setattr(trained, "action_mask", lambda observations: np.asarray(trained.valid_actions))
     monkeypatch.setattr("sb3_hhp.hhp.hhp.option_terminal", lambda space, key, goal, steps, limit: (steps > 0, False))
     obs, other = observations()[:1], observations()[1:2]
     with th.no_grad():
@@ -174,11 +184,11 @@ def test_a_deterministic_meta_controller_back_in_a_state_takes_its_best_untried_
     choosable = np.ones(len(q_values), dtype=bool) if mask is None else np.broadcast_to(mask, (1, mask.shape[-1]))[0, : len(q_values)]
     order = [int(g) for g in np.argsort(-np.where(choosable, q_values, -np.inf)) if choosable[g]]
     assert len(order) >= 2, "the test needs a state with two choosable sub-goals"
-    _, state = trained.predict(obs, episode_start=np.array([True]), deterministic=True)
+    _, state = trained.predict(obs, episode_start=np.array([True]), deterministic=deterministic)
     choices = [int(state[0][0])]
     assert choices[0] == order[0]
     for _ in range(len(order) + 1):  # each choice reached at once, the env back in the same observation
-        _, state = trained.predict(obs, state=state, episode_start=np.array([False]), deterministic=True)
+        _, state = trained.predict(obs, state=state, episode_start=np.array([False]), deterministic=deterministic)
         choices.append(int(state[0][0]))
     if break_cycles:  # every choosable sub-goal once, best first, then the best again
         assert choices == order + [order[0]] * 2
@@ -189,6 +199,11 @@ def test_a_deterministic_meta_controller_back_in_a_state_takes_its_best_untried_
     assert int(trained.predict(other, state=state, episode_start=np.array([False]), deterministic=True)[1][0][0]) == int(fresh[0][0])
     _, state = trained.predict(obs, state=state, episode_start=np.array([True]), deterministic=True)
     assert int(state[0][0]) == order[0]
+    if not deterministic:  # epsilon 1: random choosable sub-goals, whatever it remembers
+        monkeypatch.setattr(trained, "exploration_rate", 1.0)
+        drawn = [int(trained.predict(obs, state=state, episode_start=np.array([True]), deterministic=False)[1][0][0])
+                 for _ in range(60)]
+        assert set(drawn) <= set(order) and len(set(drawn)) == len(order)
 
 
 def test_predict_keeps_the_subgoal_until_episode_start_or_give_up(trained: HhP) -> None:

@@ -260,11 +260,13 @@ class HhP(BetweenEpisodes, DoubleDQN):
     :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
         calls choosable there (:meth:`~sb3_hhp.goals.GoalSpace.choosable`: not already achieved; on MiniGrid,
         also a milestone); in acting, exploring and the TD target alike (see the README's Design)
-    :param break_cycles: the deterministic policy (``predict(..., deterministic=True)``): where a greedy policy on a
-        deterministic env that comes back to a state goes round the same cycle, the meta-controller back in an
-        observation it chose in before in the episode takes its best choosable sub-goal not chosen there yet, and
-        (discrete actions) a sub-goal learner whose walk comes back to an observation takes its best action not yet
-        taken there (see the README's Design); False: plain greedy. Training is unaffected (it explores)
+    :param break_cycles: how :meth:`predict` acts where a greedy policy on a deterministic env that comes back to a
+        state goes round the same cycle: the meta-controller back in an observation it chose in before in the episode
+        takes its best choosable sub-goal not chosen there yet (nor one that just gave up), and (discrete actions) a
+        sub-goal learner whose walk comes back to an observation takes its best action not yet taken there; the
+        stochastic policy (``deterministic=False``) is that policy with epsilon-random choices and actions, as SB3's
+        DQN is epsilon-greedy (see the README's Design). False: plain greedy, and plain epsilon-greedy. Training is
+        unaffected (it explores)
     :param predictor_input: what the preference predictor reads: "observation", "features" (the goal space's
         compact description of a state, :meth:`~sb3_hhp.goals.GoalSpace.features`) or "auto" (features when the
         goal space has them; see the README's Design)
@@ -883,8 +885,9 @@ class HhP(BetweenEpisodes, DoubleDQN):
         digests of the observations of the episode's last choices and the sub-goals chosen there, the number of
         choices), so SB3's ``evaluate_policy`` works unchanged: a new sub-goal is chosen at an episode start, when the
         current one is reached, or when it gives up after ``max_subgoal_steps`` (a deterministic meta-controller then
-        takes its best *other* sub-goal). With ``break_cycles``, a deterministic policy back in an observation takes
-        the best choice, and the best action, it has not taken there yet."""
+        takes its best *other* sub-goal). With ``break_cycles``, the policy back in an observation takes the best
+        choice, and the best action, it has not taken there yet, or (``deterministic=False``) with probability epsilon
+        a random one."""
         obs = self._env_layout(np.asarray(observation))
         vectorized = obs.shape != self.primitive_observation_space.shape
         batch = obs if vectorized else obs[None]
@@ -907,7 +910,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         if not subgoals:
             actions = np.stack([self.primitive_action_space.sample() for _ in range(n_envs)])
             return (actions if vectorized else actions[0]), (goals, steps, *memory)
-        remember = deterministic and self.break_cycles
+        remember = self.break_cycles
         here = np.array([int.from_bytes(digest[:8], "little", signed=True) for digest in observation_digests(batch)],
                         dtype=np.int64) if remember else None
         renew = []
@@ -922,8 +925,9 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 renew.append(i)
         if renew:
             renew = np.asarray(renew)
-            chosen, _ = DoubleDQN.predict(self, batch[renew], deterministic=deterministic)
-            if deterministic and len(subgoals) > 1:
+            greedy = deterministic or remember  # the rules below, then (stochastic) epsilon-random choices
+            chosen, _ = DoubleDQN.predict(self, batch[renew], deterministic=greedy)
+            if greedy and len(subgoals) > 1:
                 # not chosen again at once: a sub-goal that just gave up (a greedy meta-controller would repeat the same
                 # failing choice until the episode ends), and with break_cycles any sub-goal chosen before in this
                 # observation in this episode (a greedy policy back in a state goes round the same loop of choices)
@@ -936,6 +940,13 @@ class HhP(BetweenEpisodes, DoubleDQN):
                     rows, columns = np.nonzero(same)
                     excluded[rows, chosen_goals[renew][rows, columns]] = True
                 chosen = self._other_choices(batch[renew], chosen, excluded)
+            if not deterministic and remember:  # each env's choice random with probability epsilon, as DQN explores
+                explore = np.random.rand(len(renew)) < self.exploration_rate
+                if explore.any():
+                    mask = self.action_mask(batch[renew][explore])
+                    mask = np.arange(self.action_space.n) < len(subgoals) if mask is None else mask
+                    chosen = np.array(chosen, copy=True)
+                    chosen[explore] = self._random_actions(int(explore.sum()), mask)
             goals[renew] = chosen
             steps[renew] = 0
             visited[renew], taken[renew] = 0, -1  # a new walk
@@ -949,7 +960,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             rows, columns = np.nonzero((visited == here[:, None]) & (np.arange(walk) < at[:, None]))
             avoid = np.zeros((n_envs, int(self.primitive_action_space.n)), dtype=bool)
             avoid[rows, taken[rows, columns]] = True
-            actions = self.subpolicies.act(goals, batch, deterministic=True, avoid=avoid)
+            actions = self.subpolicies.act(goals, batch, deterministic=deterministic, avoid=avoid)
             visited[np.arange(n_envs), at], taken[np.arange(n_envs), at] = here, actions
         else:
             actions = self.subpolicies.act(goals, batch, deterministic=deterministic)
