@@ -857,6 +857,8 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
     summary = summarize(model, env_id, manager.seed, seeds, results, manager.train_seconds)
     summary["deterministic_eval"] = deterministic
     summary["break_cycles"] = bool(getattr(model, "break_cycles", False))  # how the deterministic policy acted
+    # and the stochastic one, epsilon-greedy around it (a summary without this key: plain epsilon-greedy)
+    summary["stochastic_breaks_cycles"] = summary["break_cycles"]
     if options.eval_both:
         other = evaluate(model, lambda n: manager.create_envs(n, eval_env=True, no_log=True), seeds, not deterministic)
         for mode, result in ((deterministic, results), (not deterministic, other)):

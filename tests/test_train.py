@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parent.parent
 SUMMARY_KEYS = {
     "env", "seed", "total_timesteps", "success_rate", "mean_return", "eval_episodes", "eval_seeds", "queries_used",
     "query_budget", "num_subgoals", "subgoals", "fps", "train_seconds", "preference_db", "log_path", "model_path",
-    "config_entry", "deterministic_eval", "break_cycles",
+    "config_entry", "deterministic_eval", "break_cycles", "stochastic_breaks_cycles",
 }
 
 
@@ -59,6 +59,7 @@ def test_short_run_writes_summary_and_rl_zoo_outputs(tmp_path: Path) -> None:
     assert summary["env"] == "MiniGrid-Empty-5x5-v0" and summary["seed"] == 5
     assert summary["config_entry"] == "MiniGrid-Empty-5x5-v0" and summary["deterministic_eval"] is True
     assert summary["break_cycles"] is True  # the deterministic policy as it acted (the default)
+    assert summary["stochastic_breaks_cycles"] is True  # and the stochastic one
     # total_timesteps counts primitive steps: at least -n, past it by less than one episode (HhP learns per
     # episode; MiniGrid-Empty-5x5 ends after 100 steps)
     assert 3000 <= summary["total_timesteps"] <= 3000 + 100
