@@ -72,6 +72,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="a JSON object of HhP.load options to evaluate too (repeatable)")
     parser.add_argument("--deterministic-only", action="store_true",
                         help="only the deterministic policy (long episodes of a task the policy fails cost minutes each)")
+    parser.add_argument("--stochastic-only", action="store_true", help="only the stochastic policy")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1, as the runner's runs)")
     parser.add_argument("--out", default=None, help="write the figures as JSON here")
     args = parser.parse_args(argv)
@@ -82,7 +83,10 @@ def main(argv: list[str] | None = None) -> int:
     th.set_num_threads(args.threads)
     register_minigrid_tasks()
     settings = [{}] + list(args.compare)
-    modes = ("deterministic",) if args.deterministic_only else ("deterministic", "stochastic")
+    if args.deterministic_only and args.stochastic_only:
+        raise SystemExit("--deterministic-only and --stochastic-only leave nothing to evaluate: give one at most")
+    modes = ("deterministic",) if args.deterministic_only else ("stochastic",) if args.stochastic_only else (
+        "deterministic", "stochastic")
     rows = []
     for spec in args.models:
         seed_text, sep, path = spec.partition("=")

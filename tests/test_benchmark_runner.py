@@ -581,5 +581,10 @@ def test_the_evaluation_script_replays_a_runs_episodes_with_load_options(tmp_pat
     calls.clear()
     script.main(["MiniGrid-Empty-5x5-v0", f"3={final}", "--episodes", "2", "--deterministic-only"])
     assert calls == [(True, [10_003, 10_004], True)]
+    calls.clear()
+    script.main(["MiniGrid-Empty-5x5-v0", f"3={final}", "--episodes", "2", "--stochastic-only"])
+    assert calls == [(True, [10_003, 10_004], False)]
+    with pytest.raises(SystemExit, match="nothing to evaluate"):
+        script.main(["MiniGrid-Empty-5x5-v0", f"3={final}", "--deterministic-only", "--stochastic-only"])
     with pytest.raises(SystemExit, match="SEED=PATH"):
         script.main(["MiniGrid-Empty-5x5-v0", str(final)])
