@@ -16,12 +16,16 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+#: the environment variables that pin the CPU kernels (tests/conftest.py)
+PINNED = ("MKL_CBWR", "ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA")
 
 
 def learning_test():
-    """The CI learning test's module (its training, evaluation and bars)."""
+    """The CI learning test's module (its training, evaluation and bars), under the test session's settings (the
+    pinned CPU kernels of ``tests/conftest.py``, set before torch is imported; the workers inherit them)."""
     if str(ROOT / "tests") not in sys.path:
         sys.path.insert(0, str(ROOT / "tests"))
+    import conftest  # noqa: F401  (sets the environment as a test session has it)
     import test_learning
 
     return test_learning
@@ -47,7 +51,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=1, help="seeds at once, one process each")
     parser.add_argument("--out", default=None, help="a JSON file for the rows")
     args = parser.parse_args()
-    learning = learning_test()
+    learning = learning_test()  # before the workers start: they inherit the pinned kernels
     chance = learning.random_returns(learning.EVAL_SEEDS).mean()
     load = os.getloadavg()[0]
     with concurrent.futures.ProcessPoolExecutor(max_workers=args.jobs) as pool:
@@ -60,7 +64,8 @@ def main() -> None:
         print(f"{row['seed']:>10}  {row['success_rate']:7.2f}  {row['mean_return']:11.3f}  {row['train_seconds']:7.1f}  {clears}")
     if args.out:
         Path(args.out).write_text(json.dumps(dict(rows=rows, random_mean_return=round(float(chance), 3), jobs=args.jobs,
-                                                  load_average_start=round(load, 2), command=" ".join(sys.argv)), indent=2) + "\n")
+                                                  load_average_start=round(load, 2), command=" ".join(sys.argv),
+                                                  kernels={name: os.environ.get(name) for name in PINNED}), indent=2) + "\n")
 
 
 if __name__ == "__main__":
