@@ -16,8 +16,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-#: the environment variables that pin the CPU kernels (tests/conftest.py)
-PINNED = ("MKL_CBWR", "ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA")
 
 
 def learning_test():
@@ -52,6 +50,7 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="a JSON file for the rows")
     args = parser.parse_args()
     learning = learning_test()  # before the workers start: they inherit the pinned kernels
+    from conftest import PINNED_KERNELS  # the variables tests/conftest.py sets (on the path now)
     chance = learning.random_returns(learning.EVAL_SEEDS).mean()
     load = os.getloadavg()[0]
     with concurrent.futures.ProcessPoolExecutor(max_workers=args.jobs) as pool:
@@ -65,7 +64,7 @@ def main() -> None:
     if args.out:
         Path(args.out).write_text(json.dumps(dict(rows=rows, random_mean_return=round(float(chance), 3), jobs=args.jobs,
                                                   load_average_start=round(load, 2), command=" ".join(sys.argv),
-                                                  kernels={name: os.environ.get(name) for name in PINNED}), indent=2) + "\n")
+                                                  kernels={name: os.environ.get(name) for name in PINNED_KERNELS}), indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -942,11 +942,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 chosen = self._other_choices(batch[renew], chosen, excluded)
             if not deterministic and remember:  # each env's choice random with probability epsilon, as DQN explores
                 explore = np.random.rand(len(renew)) < self.exploration_rate
-                if explore.any():
-                    mask = self.action_mask(batch[renew][explore])
-                    mask = np.arange(self.action_space.n) < len(subgoals) if mask is None else mask
-                    chosen = np.array(chosen, copy=True)
-                    chosen[explore] = self._random_actions(int(explore.sum()), mask)
+                if explore.any():  # among the choosable sub-goals, as choose_subgoals explores (None: the valid ones)
+                    chosen[explore] = self._random_actions(int(explore.sum()), self.action_mask(batch[renew][explore]))
             goals[renew] = chosen
             steps[renew] = 0
             visited[renew], taken[renew] = 0, -1  # a new walk

@@ -487,7 +487,7 @@ class StackedDQN:
             avoid: Optional[np.ndarray] = None) -> np.ndarray:
         """One primitive action per env: sub-goal ``goals[i]``'s learner at ``obs[i]``, epsilon-greedy unless
         ``deterministic``; ``avoid`` ``(n, A)``: actions the greedy choice passes over where another allowed action is
-        left (the deterministic policy breaking a cycle, :meth:`HhP.predict`)."""
+        left (the policy breaking a cycle, :meth:`HhP.predict`)."""
         q = self.q_values(goals, obs)
         mask = self.allowed_actions(obs)
         if mask is not None:
