@@ -15,7 +15,6 @@ Needs the ``plots`` extra (pandas, matplotlib).
 
 import argparse
 import json
-import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -34,8 +33,6 @@ except ImportError:  # run as a script, python benchmarks/report.py: the reposit
 VARIANT_NAMES = {"hhp": "HhP", "dqn": "DQN", "ppo": "PPO", "ppo_rnd": "PPO + RND"}
 #: columns a results file must have
 REQUIRED_COLUMNS = ("env", "variant", "seed", "steps", "success_det", "success_stoch", "labels_used", "wall_seconds")
-#: a run's name (its log folder): ``<env>__<variant>__s<seed>``
-RUN_NAME = re.compile(r".+__.+__s\d+")
 #: points of the common step grid the seeds' curves are interpolated onto
 CURVE_GRID_POINTS = 100
 
@@ -246,15 +243,16 @@ def greedy_rows(results: pd.DataFrame, folder: Path) -> list[tuple[int, str, str
     return named
 
 
-def reevaluations(folder: Path) -> dict[str, list[dict]]:
-    """The runs that ``benchmarks/evaluate.py`` evaluated again with cycles broken: the JSON files it wrote into
-    ``folder`` (``{"env", "episodes", "runs": [...]}``, or the rows under ``"variants"``), by run name (the log folder in each model's path). A figure
-    counts where its row records ``break_cycles`` true, or, in files written before rows recorded it, where no load
-    option turned it off (models saved before ``break_cycles`` existed load with it on); files in order of name.
+def reevaluations(folder: Path) -> list[dict]:
+    """The figures of models that ``benchmarks/evaluate.py`` evaluated again with cycles broken: the JSON files it wrote
+    into ``folder`` (``{"env", "episodes", "runs": [...]}``, or the rows under ``"variants"``). A figure counts where
+    its row records ``break_cycles`` true, or, in files written before rows recorded it, where no load option turned
+    it off (models saved before ``break_cycles`` existed load with it on); files in order of name.
 
-    :return: run name -> its figures, each ``success`` (deterministic), ``episodes``, ``file`` (its name)
+    :return: each figure's ``success`` (deterministic), ``episodes``, ``file`` (its name) and ``folders`` (those of its
+        model's path: a run's log folder is named as the run)
     """
-    found: dict[str, list[dict]] = {}
+    found: list[dict] = []
     for path in sorted(folder.glob("*.json")):
         try:
             data = json.loads(path.read_text())
@@ -271,10 +269,8 @@ def reevaluations(folder: Path) -> dict[str, list[dict]]:
             options = row.get("load_options") or {}
             if not row.get("break_cycles", options.get("break_cycles", True)):
                 continue
-            run = next((part for part in Path(str(row.get("model", ""))).parts if RUN_NAME.fullmatch(part)), None)
-            if run is not None:
-                found.setdefault(run, []).append(
-                    {"success": float(row["deterministic"]), "episodes": data.get("episodes"), "file": path.name})
+            found.append({"success": float(row["deterministic"]), "episodes": data.get("episodes"), "file": path.name,
+                          "folders": set(Path(str(row.get("model", ""))).parts)})
     return found
 
 
@@ -289,8 +285,8 @@ def break_cycles_note(results: pd.DataFrame, folder: Path) -> tuple[pd.DataFrame
     replaced, kept = [], []
     for index, name, run in greedy:
         episodes = results.loc[index, "eval_episodes"] if "eval_episodes" in results else None
-        same = [figure for figure in again.get(run, []) if episodes is None or pd.isna(episodes)
-                or figure["episodes"] is None or int(figure["episodes"]) == int(episodes)]
+        same = [figure for figure in again if run in figure["folders"] and (
+            episodes is None or pd.isna(episodes) or figure["episodes"] is None or int(figure["episodes"]) == int(episodes))]
         if not same:  # never evaluated again, or on other episodes than the runner's
             kept.append(name)
             continue
