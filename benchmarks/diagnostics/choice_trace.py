@@ -4,7 +4,11 @@ Loads a model (a ``.zip``, or a run folder's newest checkpoint, ``sb3_hhp.train 
 fresh episodes with ``predict``, as ``evaluate_policy`` does. Every choice is recorded with the sub-goal key of the
 state it was made in, whether it was reached, and in how many primitive steps. Printed: the first episodes as
 chains of choices, then for every (state, chosen sub-goal) pair how often it was chosen and reached. A chain that
-loops (picking the key up, dropping it) or a choice that never succeeds shows where a run is stuck.
+loops (picking the key up, dropping it) or a choice that never succeeds shows where a run is stuck. On MiniGrid, each
+walk also records how far (in cells, the larger of the two axes) the nearest object the sub-goal faces was at its start
+(e.g. the locked door, for "carrying key, facing locked door"), and whether that object was within the cells the
+sub-goal learners read (``subgoal_learner_kwargs`` ``view``; every cell without one); printed per sub-goal: chosen and
+reached with the object in view and out of it.
 
     python benchmarks/diagnostics/choice_trace.py logs/hhp/MiniGrid-KeyCorridorS4R3-v0_1 \\
         --env MiniGrid-KeyCorridorS4R3-v0 --episodes 20 --out trace.json
@@ -15,6 +19,7 @@ import json
 import pathlib
 import sys
 from collections import Counter
+from typing import Any, Optional
 
 import numpy as np
 
@@ -23,6 +28,9 @@ from benchmarks.diagnostics.key_skills import newest_checkpoint  # noqa: E402
 from sb3_hhp import HhP  # noqa: E402
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
 from sb3_hhp.hierarchy.options import option_terminal  # noqa: E402
+
+from sb3_hhp.goals.base import SUCCESS_KEY  # noqa: E402
+from sb3_hhp.goals.minigrid import INTERACTIVE, MiniGridGoalSpace  # noqa: E402
 
 import gymnasium as gym  # noqa: E402
 
@@ -35,9 +43,33 @@ def env_state(env: gym.Env) -> bytes:
     return grid.grid.encode().tobytes() + bytes([*grid.agent_pos, grid.agent_dir, *carrying])
 
 
+def target_distance(env: gym.Env, goal_space: Any, goal_key: Any) -> Optional[int]:
+    """How many cells (the larger of the two axes) lie between the agent and the nearest object a MiniGrid sub-goal
+    ``goal_key`` faces (its kind and state, and colour in a key that has it); None for "task solved", a sub-goal that
+    faces nothing to interact with, another goal space, or no such object in the grid."""
+    if not isinstance(goal_space, MiniGridGoalSpace) or not isinstance(goal_key, tuple) or goal_key == SUCCESS_KEY:
+        return None
+    if goal_space.use_color:
+        front, colour, state = goal_key[2], goal_key[3], goal_key[4]
+    else:
+        front, colour, state = goal_key[1], None, goal_key[2]
+    if front not in INTERACTIVE:
+        return None
+    cells = env.unwrapped.grid.encode()  # (width, height, 3): kind, colour, state
+    match = (cells[..., 0] == front) & (cells[..., 2] == state)
+    if colour is not None:
+        match &= cells[..., 1] == colour
+    if not match.any():
+        return None
+    xs, ys = np.nonzero(match)
+    agent_x, agent_y = env.unwrapped.agent_pos
+    return int(np.maximum(np.abs(xs - agent_x), np.abs(ys - agent_y)).min())
+
+
 def trace_episode(model: HhP, env: gym.Env, seed: int, deterministic: bool) -> dict:
-    """One episode: its choices ``(state key, chosen sub-goal, reached, steps, cycled)`` and whether the task was
-    solved; ``cycled``: the env came back to a state it was in since the choice, before the sub-goal was reached."""
+    """One episode: its choices ``(state key, chosen sub-goal, reached, steps, cycled, distance)`` and whether the task
+    was solved; ``cycled``: the env came back to a state it was in since the choice, before the sub-goal was reached;
+    ``distance``: :func:`target_distance` at the choice."""
     obs, _ = env.reset(seed=seed)
     describe = model.goal_space.describe
     state, start, choices, current, seen = None, True, [], None, set()
@@ -46,7 +78,8 @@ def trace_episode(model: HhP, env: gym.Env, seed: int, deterministic: bool) -> d
         goal, steps = int(state[0][0]), int(state[1][0])
         if steps == 1:  # a new choice was made in this state
             current = dict(state=describe(model.goal_space.key(obs)), goal=describe(model.subgoals[goal].key),
-                           reached=False, steps=0, cycled=False)
+                           reached=False, steps=0, cycled=False,
+                           distance=target_distance(env, model.goal_space, model.subgoals[goal].key))
             choices.append(current)
             seen = set()
         here = env_state(env)
@@ -61,6 +94,24 @@ def trace_episode(model: HhP, env: gym.Env, seed: int, deterministic: bool) -> d
         current["reached"] = current["reached"] or bool(achieved)
         if terminated or truncated:
             return dict(seed=seed, solved=bool(terminated and reward > 0), choices=choices)
+
+
+def view_reach(episodes: list[dict], view: Optional[int]) -> Optional[dict]:
+    """Per chosen sub-goal: walks chosen and reached with the object it faces within the learners' ``view`` x ``view``
+    cells around the agent at the choice (``view`` None or "inner": every cell) and beyond them; None where no choice
+    has a distance."""
+    radius = view // 2 if isinstance(view, int) else None
+    goals: dict[str, dict] = {}
+    for episode in episodes:
+        for choice in episode["choices"]:
+            if choice.get("distance") is None:
+                continue
+            where = "in_view" if radius is None or choice["distance"] <= radius else "out_of_view"
+            row = goals.setdefault(choice["goal"], dict(in_view=0, in_view_reached=0, out_of_view=0,
+                                                        out_of_view_reached=0))
+            row[where] += 1
+            row[f"{where}_reached"] += int(choice["reached"])
+    return dict(view=view if view is not None else "every cell", goals=goals) if goals else None
 
 
 def main() -> None:
@@ -96,8 +147,17 @@ def main() -> None:
     print(f"{'chosen':>7} {'reached':>7} {'cycled':>7}  in state -> sub-goal")
     for (state_key, goal), count in chosen.most_common(30):
         print(f"{count:7d} {reached[state_key, goal]:7d} {cycled[state_key, goal]:7d}  {state_key} -> {goal}")
+    reach = view_reach(episodes, getattr(model.subpolicies, "view", None))
+    if reach:
+        print("walks by where the object the sub-goal faces was at the choice (view: the cells the learners read, "
+              f"{reach['view']}):")
+        print(f"{'in view: chosen':>15} {'reached':>7} {'out of view: chosen':>19} {'reached':>7}  sub-goal")
+        for goal, row in reach["goals"].items():
+            print(f"{row['in_view']:15d} {row['in_view_reached']:7d} {row['out_of_view']:19d} "
+                  f"{row['out_of_view_reached']:7d}  {goal}")
     if args.out:
-        pathlib.Path(args.out).write_text(json.dumps(dict(model=model_path, env=args.env, episodes=episodes), indent=1))
+        pathlib.Path(args.out).write_text(json.dumps(dict(model=model_path, env=args.env, view_reach=reach,
+                                                          episodes=episodes), indent=1))
 
 
 if __name__ == "__main__":

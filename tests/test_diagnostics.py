@@ -1,0 +1,57 @@
+"""The diagnostics' own arithmetic (benchmarks/diagnostics): where the object a sub-goal faces lies at a choice."""
+
+import gymnasium as gym
+import minigrid  # noqa: F401  (registers the MiniGrid envs)
+from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX, STATE_TO_IDX
+from minigrid.core.world_object import Door, Key
+
+from benchmarks.diagnostics.choice_trace import target_distance, view_reach
+from sb3_hhp.goals import SUCCESS_KEY, MiniGridGoalSpace, wrap_env
+
+EMPTY, KEY, DOOR = OBJECT_TO_IDX["empty"], OBJECT_TO_IDX["key"], OBJECT_TO_IDX["door"]
+LOCKED, OPEN = STATE_TO_IDX["locked"], STATE_TO_IDX["open"]
+
+
+def _cell_of(base, kind) -> tuple[int, int]:
+    return next((x, y) for x in range(base.width) for y in range(base.height) if isinstance(base.grid.get(x, y), kind))
+
+
+def test_target_distance_is_the_larger_axis_to_the_nearest_matching_object() -> None:
+    env = wrap_env(gym.make("MiniGrid-DoorKey-16x16-v0"))
+    env.reset(seed=3)
+    base = env.unwrapped
+    door_x, door_y = _cell_of(base, Door)
+    key_x, key_y = _cell_of(base, Key)
+    agent_x, agent_y = base.agent_pos
+    plain = MiniGridGoalSpace()
+    assert target_distance(env, plain, (KEY, DOOR, LOCKED)) == max(abs(door_x - agent_x), abs(door_y - agent_y))
+    assert target_distance(env, plain, (EMPTY, KEY, 0)) == max(abs(key_x - agent_x), abs(key_y - agent_y))
+    # the door's state counts: no open door in a fresh DoorKey layout; nothing to face, and "task solved": no distance
+    assert target_distance(env, plain, (KEY, DOOR, OPEN)) is None
+    assert target_distance(env, plain, (KEY, EMPTY, 0)) is None
+    assert target_distance(env, plain, SUCCESS_KEY) is None
+    # with colours, the key's colour must match too
+    coloured = MiniGridGoalSpace(use_color=True)
+    door_colour = COLOR_TO_IDX[base.grid.get(door_x, door_y).color]
+    other = next(index for index in COLOR_TO_IDX.values() if index != door_colour)
+    expected = max(abs(door_x - agent_x), abs(door_y - agent_y))
+    assert target_distance(env, coloured, (EMPTY, 0, DOOR, door_colour, LOCKED)) == expected
+    assert target_distance(env, coloured, (EMPTY, 0, DOOR, other, LOCKED)) is None
+
+
+def test_view_reach_splits_walks_at_the_learners_view() -> None:
+    walk = dict(goal="to the door")
+    episodes = [dict(choices=[
+        {**walk, "distance": 7, "reached": True},  # the edge of a 15 x 15 view: in it
+        {**walk, "distance": 8, "reached": False},
+        {**walk, "distance": 9, "reached": True},
+        {**walk, "distance": 2, "reached": False},
+        dict(goal="task solved", distance=None, reached=True),  # no distance: left out
+    ])]
+    reach = view_reach(episodes, 15)
+    assert reach["view"] == 15
+    assert reach["goals"] == {"to the door": dict(in_view=2, in_view_reached=1, out_of_view=2, out_of_view_reached=1)}
+    # learners that read every cell: every walk is in view
+    everything = view_reach(episodes, None)["goals"]["to the door"]
+    assert (everything["in_view"], everything["out_of_view"]) == (4, 0)
+    assert view_reach([dict(choices=[dict(goal="task solved", distance=None, reached=True)])], 15) is None
