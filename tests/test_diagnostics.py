@@ -6,6 +6,7 @@ from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX, STATE_TO_IDX
 from minigrid.core.world_object import Door, Key
 
 from benchmarks.diagnostics.choice_trace import target_distance, view_reach
+from benchmarks.diagnostics.learner_proxy import make_env, split_at, start_distance, tries
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridGoalSpace, wrap_env
 
 EMPTY, KEY, DOOR = OBJECT_TO_IDX["empty"], OBJECT_TO_IDX["key"], OBJECT_TO_IDX["door"]
@@ -55,3 +56,19 @@ def test_view_reach_splits_walks_at_the_learners_view() -> None:
     everything = view_reach(episodes, None)["goals"]["to the door"]
     assert (everything["in_view"], everything["out_of_view"]) == (4, 0)
     assert view_reach([dict(choices=[dict(goal="task solved", distance=None, reached=True)])], 15) is None
+
+
+def test_the_proxy_splits_its_tries_by_where_the_object_starts() -> None:
+    env = make_env("MiniGrid-DoorKey-16x16-v0", "door", max_steps=3)
+    env.reset(seed=5)
+    base = env.unwrapped
+    door_x, door_y = _cell_of(base, Door)
+    assert start_distance(env, Door) == max(abs(door_x - base.agent_pos[0]), abs(door_y - base.agent_pos[1]))
+    results = tries(env, 3, lambda obs, first: 0, seed=5)  # turning left: never reaches the door
+    env.reset(seed=5)
+    assert results[0][0] == start_distance(env, Door)  # each try's distance is its own layout's
+    assert not any(reached for _, reached in results)
+    split = split_at([(3, True), (7, False), (8, True), (12, True)], radius=7)
+    assert split == dict(tries_within=2, reached_within=0.5, tries_beyond=2, reached_beyond=1.0)
+    assert split_at([(9, False)], radius=7) == dict(tries_within=0, reached_within=None, tries_beyond=1,
+                                                    reached_beyond=0.0)

@@ -19,7 +19,8 @@ the training envs' episodes (MiniGrid's ``max_steps``). Its evaluation: HhP's ``
 layouts, reached within ``--max-steps``.
 
 At every quarter of ``--steps`` the greedy policy and the policy with epsilon 0.05 are evaluated on fresh layouts
-(seeds 50,000+): the fraction of tries that reach the object.
+(seeds 50,000+): the fraction of tries that reach the object; the greedy policy's also split by where the object was
+at the try's start (within ``--radius`` cells of the agent, the larger of the two axes, or beyond).
 
     python benchmarks/diagnostics/learner_proxy.py --env MiniGrid-DoorKey-16x16-v0 --gamma 0.99 \\
         --kwargs '{"target_update_interval": 1000}' --seed 0 --out benchmarks/results/diagnostics/proxy.json
@@ -93,18 +94,42 @@ def make_env(env_id: str, kind: str, max_steps: int, crop: int = 0) -> gym.Env:
     return FaceObject(CenterCrop(env, crop) if crop else env, OBJECTS[kind], max_steps)
 
 
-def success_rate(env: gym.Env, episodes: int, act: Any, seed: int = 50_000) -> float:
-    """The fraction of ``episodes`` fresh tries (seeds ``seed``, ``seed + 1``, ...) that reach the object, acting
-    with ``act(obs, first)`` (``first``: the try's first step)."""
-    reached = 0
+def start_distance(env: gym.Env, kind: type) -> int:
+    """Cells (the larger of the two axes) from the agent of a MiniGrid env to the nearest object of class ``kind``."""
+    base = env.unwrapped
+    cells = [(x, y) for x in range(base.grid.width) for y in range(base.grid.height)
+             if isinstance(base.grid.get(x, y), kind)]
+    return min(max(abs(x - base.agent_pos[0]), abs(y - base.agent_pos[1])) for x, y in cells)
+
+
+def tries(env: FaceObject, episodes: int, act: Any, seed: int = 50_000) -> list[tuple[int, bool]]:
+    """``episodes`` fresh tries (seeds ``seed``, ``seed + 1``, ...) acting with ``act(obs, first)`` (``first``: the
+    try's first step): each one's :func:`start_distance` and whether it reached the object."""
+    results = []
     for episode in range(episodes):
         obs, _ = env.reset(seed=seed + episode)
+        distance = start_distance(env, env.kind)
         done, info, first = False, {}, True
         while not done:
             obs, _, terminated, truncated, info = env.step(act(obs, first))
             done, first = terminated or truncated, False
-        reached += int(info["is_success"])
-    return reached / episodes
+        results.append((distance, bool(info["is_success"])))
+    return results
+
+
+def success_rate(env: FaceObject, episodes: int, act: Any, seed: int = 50_000) -> float:
+    """The fraction of :func:`tries` that reach the object."""
+    return float(np.mean([reached for _, reached in tries(env, episodes, act, seed)]))
+
+
+def split_at(results: list[tuple[int, bool]], radius: int) -> dict[str, Any]:
+    """:func:`tries` split at ``radius`` cells (the view a learner reads: ``view // 2``): how many started with the
+    object within it and beyond it, and the fraction of each that reached it (None: no such try)."""
+    split: dict[str, Any] = {}
+    for name, part in (("within", [r for d, r in results if d <= radius]), ("beyond", [r for d, r in results if d > radius])):
+        split[f"tries_{name}"] = len(part)
+        split[f"reached_{name}"] = float(np.mean(part)) if part else None
+    return split
 
 
 def epsilon_greedy(model: Any, n_actions: int, epsilon: float, seed: int = 50_000) -> Any:
@@ -225,6 +250,9 @@ def main() -> None:
     parser.add_argument("--train-max-steps", type=int, default=0,
                         help="--learner hhp: the training envs' episode length (MiniGrid's max_steps; 0: the env's)")
     parser.add_argument("--view", type=int, default=0, help="StackedDQN's view (odd; 0: the whole canvas)")
+    parser.add_argument("--radius", type=int, default=7,
+                        help="the greedy evaluation also splits its tries at this many cells from the agent to the "
+                             "object at the start (7: within a 15x15 view, the entries' `view: 15`, or beyond it)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--eval-episodes", type=int, default=50)
     parser.add_argument("--out", default=None, help="write the settings and the curve as JSON here")
@@ -246,12 +274,14 @@ def main() -> None:
         if args.learner == "hhp":
             point = dict(stochastic=success_rate(eval_env, episodes, hhp_stochastic(model)))
         else:
-            point = dict(greedy=success_rate(eval_env, episodes, epsilon_greedy(model, n_actions, 0.0)),
-                         epsilon_0_05=success_rate(eval_env, episodes, epsilon_greedy(model, n_actions, 0.05)))
+            greedy = tries(eval_env, episodes, epsilon_greedy(model, n_actions, 0.0))
+            point = dict(greedy=float(np.mean([reached for _, reached in greedy])),
+                         epsilon_0_05=success_rate(eval_env, episodes, epsilon_greedy(model, n_actions, 0.05)),
+                         greedy_by_start=split_at(greedy, args.radius))
         curve.append(dict(steps=model.num_timesteps, **point, seconds=round(time.perf_counter() - begin, 1)))
         print(json.dumps(curve[-1]), flush=True)
     result = dict(env=args.env, object=args.object, seed=args.seed, max_steps=args.max_steps, crop=args.crop,
-                  learner=args.learner, view=args.view, hhp_kwargs=json.loads(args.hhp_kwargs),
+                  learner=args.learner, view=args.view, radius=args.radius, hhp_kwargs=json.loads(args.hhp_kwargs),
                   train_max_steps=args.train_max_steps, n_envs=args.n_envs, stay_after_success=args.stay_after_success,
                   settings={key: (value if isinstance(value, (int, float, str)) else str(value)) for key, value in settings.items()},
                   curve=curve, command="benchmarks/diagnostics/learner_proxy.py " + " ".join(sys.argv[1:]))
