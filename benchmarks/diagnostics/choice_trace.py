@@ -26,11 +26,9 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
 from benchmarks.diagnostics.key_skills import newest_checkpoint  # noqa: E402
 from sb3_hhp import HhP  # noqa: E402
-from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
+from sb3_hhp.goals import SUCCESS_KEY, MiniGridGoalSpace, register_minigrid_tasks, wrap_env  # noqa: E402
+from sb3_hhp.goals.minigrid import INTERACTIVE  # noqa: E402
 from sb3_hhp.hierarchy.options import option_terminal  # noqa: E402
-
-from sb3_hhp.goals.base import SUCCESS_KEY  # noqa: E402
-from sb3_hhp.goals.minigrid import INTERACTIVE, MiniGridGoalSpace  # noqa: E402
 
 import gymnasium as gym  # noqa: E402
 
