@@ -57,6 +57,12 @@ def target_distance(env: gym.Env, goal_space: Any, goal_key: Any) -> Optional[in
     match = (cells[..., 0] == front) & (cells[..., 2] == state)
     if colour is not None:
         match &= cells[..., 1] == colour
+    return nearest_distance(env, match)
+
+
+def nearest_distance(env: gym.Env, match: np.ndarray) -> Optional[int]:
+    """Cells (the larger of the two axes) from the agent of a MiniGrid env to the nearest cell where ``match``
+    (``(width, height)``, boolean) holds; None where it holds nowhere."""
     if not match.any():
         return None
     xs, ys = np.nonzero(match)

@@ -41,6 +41,7 @@ from minigrid.core.world_object import Ball, Box, Door, Key
 from stable_baselines3 import DQN
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
+from benchmarks.diagnostics.choice_trace import nearest_distance  # noqa: E402
 from benchmarks.speed import entry_kwargs  # noqa: E402
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
 from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS, StackedDQN, view_cells  # noqa: E402
@@ -96,10 +97,9 @@ def make_env(env_id: str, kind: str, max_steps: int, crop: int = 0) -> gym.Env:
 
 def start_distance(env: gym.Env, kind: type) -> int:
     """Cells (the larger of the two axes) from the agent of a MiniGrid env to the nearest object of class ``kind``."""
-    base = env.unwrapped
-    cells = [(x, y) for x in range(base.grid.width) for y in range(base.grid.height)
-             if isinstance(base.grid.get(x, y), kind)]
-    return min(max(abs(x - base.agent_pos[0]), abs(y - base.agent_pos[1])) for x, y in cells)
+    grid = env.unwrapped.grid
+    return nearest_distance(env, np.array([[isinstance(grid.get(x, y), kind) for y in range(grid.height)]
+                                           for x in range(grid.width)]))
 
 
 def tries(env: FaceObject, episodes: int, act: Any, seed: int = 50_000) -> list[tuple[int, bool]]:
@@ -117,18 +117,23 @@ def tries(env: FaceObject, episodes: int, act: Any, seed: int = 50_000) -> list[
     return results
 
 
+def reached_share(results: list[tuple[int, bool]]) -> float:
+    """The fraction of :func:`tries` ``results`` that reached the object."""
+    return float(np.mean([reached for _, reached in results]))
+
+
 def success_rate(env: FaceObject, episodes: int, act: Any, seed: int = 50_000) -> float:
     """The fraction of :func:`tries` that reach the object."""
-    return float(np.mean([reached for _, reached in tries(env, episodes, act, seed)]))
+    return reached_share(tries(env, episodes, act, seed))
 
 
 def split_at(results: list[tuple[int, bool]], radius: int) -> dict[str, Any]:
     """:func:`tries` split at ``radius`` cells (the view a learner reads: ``view // 2``): how many started with the
     object within it and beyond it, and the fraction of each that reached it (None: no such try)."""
     split: dict[str, Any] = {}
-    for name, part in (("within", [r for d, r in results if d <= radius]), ("beyond", [r for d, r in results if d > radius])):
+    for name, part in (("within", [t for t in results if t[0] <= radius]), ("beyond", [t for t in results if t[0] > radius])):
         split[f"tries_{name}"] = len(part)
-        split[f"reached_{name}"] = float(np.mean(part)) if part else None
+        split[f"reached_{name}"] = reached_share(part) if part else None
     return split
 
 
@@ -275,7 +280,7 @@ def main() -> None:
             point = dict(stochastic=success_rate(eval_env, episodes, hhp_stochastic(model)))
         else:
             greedy = tries(eval_env, episodes, epsilon_greedy(model, n_actions, 0.0))
-            point = dict(greedy=float(np.mean([reached for _, reached in greedy])),
+            point = dict(greedy=reached_share(greedy),
                          epsilon_0_05=success_rate(eval_env, episodes, epsilon_greedy(model, n_actions, 0.05)),
                          greedy_by_start=split_at(greedy, args.radius))
         curve.append(dict(steps=model.num_timesteps, **point, seconds=round(time.perf_counter() - begin, 1)))
