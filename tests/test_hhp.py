@@ -546,6 +546,9 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
          "needs share_experience=True"),
         (dict(env=EMPTY, subgoal_learner_kwargs=dict(view=4)), "view.*odd integer"),
         (dict(env=EMPTY, subgoal_learner_kwargs=dict(view=9)), "view 9 is larger than the observation's 7 x 7"),
+        (dict(env=EMPTY, subgoal_learner_kwargs=dict(one_hot=[11, 6])), "one_hot.*each of the observation's 3 channels"),
+        (dict(env=EMPTY, subgoal_learner_kwargs=dict(one_hot=[0, 0, 0])), "one_hot.*not all 0"),
+        (dict(env=EMPTY, subgoal_learner_kwargs=dict(one_hot=[11, -1, 3])), "one_hot.*0 to 256"),
     ],
 )
 def test_bad_arguments_raise_clear_errors(kwargs: dict, match: str) -> None:
@@ -565,6 +568,33 @@ def test_learners_with_a_view_read_the_cells_around_the_agent_and_save_and_load(
     model.save(tmp_path / "viewed")
     loaded = HhP.load(tmp_path / "viewed")
     assert loaded.subgoal_learner_kwargs["view"] == 3
+    sequence = _rollout_observations(model, seed=3)
+    assert _predictions(loaded, sequence) == _predictions(model, sequence)
+
+
+def test_one_hot_learners_read_each_code_as_indicators_and_save_and_load(tmp_path) -> None:
+    """subgoal_learner_kwargs one_hot=[11, 0, 3] with view=3: each of the 3 x 3 cells around the agent becomes 11 object
+    and 3 state indicators (colour left out), 126 inputs; the learners' Q-values are SB3's network of the sub-goal
+    (``policy(g)``) applied to cells encoded here by hand; a saved model acts as the one it saved."""
+    model = make_model(subgoal_learner_kwargs=dict(view=3, one_hot=[11, 0, 3]))
+    model.learn(600)
+    assert len(model.subgoals) > 0 and model.subpolicies.n_updates.sum() > 0
+    assert model.subpolicies.policy(0).q_net.q_net[0].in_features == 3 * 3 * (11 + 3)
+    obs = observations()
+    cells = obs[:, 2:5, 2:5]  # the 3 x 3 cells at the centre of the 7 x 7 canvas
+    by_hand = np.zeros((*cells.shape[:3], 14), dtype=np.float32)
+    for index in np.ndindex(*cells.shape[:3]):
+        by_hand[index + (cells[index + (0,)],)] = 1.0  # the object id among the first 11
+        by_hand[index + (11 + cells[index + (2,)],)] = 1.0  # the state among the last 3
+    assert by_hand[..., :11].sum() == by_hand[..., 11:].sum() == cells.shape[0] * 9  # one of each in every cell
+    for goal in range(len(model.subgoals)):
+        with th.no_grad():
+            expected = model.subpolicies.policy(goal).q_net(th.as_tensor(by_hand))
+        got = model.subpolicies.q_values(np.full(len(obs), goal), obs)
+        assert th.allclose(got, expected, atol=1e-5)
+    model.save(tmp_path / "one_hot")
+    loaded = HhP.load(tmp_path / "one_hot")
+    assert loaded.subgoal_learner_kwargs["one_hot"] == [11, 0, 3]
     sequence = _rollout_observations(model, seed=3)
     assert _predictions(loaded, sequence) == _predictions(model, sequence)
 

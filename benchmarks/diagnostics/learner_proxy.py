@@ -44,7 +44,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
 from benchmarks.diagnostics.choice_trace import nearest_distance  # noqa: E402
 from benchmarks.speed import entry_kwargs  # noqa: E402
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
-from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS, StackedDQN, view_cells  # noqa: E402
+from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS, StackedDQN, one_hot_tables, view_cells  # noqa: E402
 
 OBJECTS = {"key": Key, "door": Door, "ball": Ball, "box": Box}
 #: the exploration schedule of SB3's DQN, which HhP's learners set with their own exploration_steps
@@ -90,9 +90,27 @@ class CenterCrop(gym.ObservationWrapper):
         return np.ascontiguousarray(observation[self.cells])
 
 
-def make_env(env_id: str, kind: str, max_steps: int, crop: int = 0) -> gym.Env:
+class OneHot(gym.ObservationWrapper):
+    """Each cell's object id and state as one-hot indicators (11 + 3 channels, colour left out), as the sub-goal
+    learners read them with ``subgoal_learner_kwargs`` ``one_hot: [11, 0, 3]`` (:func:`one_hot_tables`), instead of
+    the integer codes."""
+
+    SIZES = [11, 0, 3]
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self.tables = one_hot_tables(env.observation_space, self.SIZES)
+        shape = env.observation_space.shape
+        self.observation_space = gym.spaces.Box(0, 1, (*shape[:2], sum(self.SIZES)), np.uint8)
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        return np.concatenate([table[observation[..., channel]] for channel, table in self.tables], axis=-1)
+
+
+def make_env(env_id: str, kind: str, max_steps: int, crop: int = 0, one_hot: bool = False) -> gym.Env:
     env = wrap_env(gym.make(env_id))
-    return FaceObject(CenterCrop(env, crop) if crop else env, OBJECTS[kind], max_steps)
+    env = CenterCrop(env, crop) if crop else env
+    return FaceObject(OneHot(env) if one_hot else env, OBJECTS[kind], max_steps)
 
 
 def start_distance(env: gym.Env, kind: type) -> int:
@@ -254,6 +272,9 @@ def main() -> None:
                              "in HhP's option loop), not by a fresh layout")
     parser.add_argument("--train-max-steps", type=int, default=0,
                         help="--learner hhp: the training envs' episode length (MiniGrid's max_steps; 0: the env's)")
+    parser.add_argument("--one-hot", action="store_true",
+                        help="the cells' object ids and states as one-hot indicators (OneHot, the learners' one_hot [11, 0, 3]), "
+                             "not integer codes")
     parser.add_argument("--view", type=int, default=0, help="StackedDQN's view (odd; 0: the whole canvas)")
     parser.add_argument("--radius", type=int, default=7,
                         help="the greedy evaluation also splits its tries at this many cells from the agent to the "
@@ -265,7 +286,7 @@ def main() -> None:
     register_minigrid_tasks()
     th.set_num_threads(1)
     settings = learner_settings(args.steps, args.exploration_steps, args.gamma, json.loads(args.kwargs))
-    env, eval_env = (make_env(args.env, args.object, args.max_steps, args.crop) for _ in range(2))
+    env, eval_env = (make_env(args.env, args.object, args.max_steps, args.crop, args.one_hot) for _ in range(2))
     if args.learner == "stacked":
         model = StackedAgent(env, settings, args.exploration_steps, args.view, args.seed, not args.stay_after_success)
     elif args.learner == "hhp":
@@ -286,7 +307,7 @@ def main() -> None:
         curve.append(dict(steps=model.num_timesteps, **point, seconds=round(time.perf_counter() - begin, 1)))
         print(json.dumps(curve[-1]), flush=True)
     result = dict(env=args.env, object=args.object, seed=args.seed, max_steps=args.max_steps, crop=args.crop,
-                  learner=args.learner, view=args.view, radius=args.radius, hhp_kwargs=json.loads(args.hhp_kwargs),
+                  one_hot=args.one_hot, learner=args.learner, view=args.view, radius=args.radius, hhp_kwargs=json.loads(args.hhp_kwargs),
                   train_max_steps=args.train_max_steps, n_envs=args.n_envs, stay_after_success=args.stay_after_success,
                   settings={key: (value if isinstance(value, (int, float, str)) else str(value)) for key, value in settings.items()},
                   curve=curve, command="benchmarks/diagnostics/learner_proxy.py " + " ".join(sys.argv[1:]))

@@ -101,9 +101,11 @@ DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similari
 #: learners, relabelled with their rewards; whether they take their gradient steps on every primitive step, not
 #: only while they act (None: True for discrete actions, False for DDPG sub-goals, a model each); most learners
 #: updated in one round (``subgoal_learner="stacked"``; None: all); the learning rounds of one step of the envs in one
-#: call; the cells around the agent the learners read (None: the whole observation)
+#: call; the cells around the agent the learners read (None: the whole observation); the one-hot encoding of each
+#: channel the learners read (None: its integer codes)
 SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(exploration_steps=5_000, share_experience=True, train_shared=None,
-                                                max_updates=8, grouped_rounds=False, view=None, carry_relabel=0.0)
+                                                max_updates=8, grouped_rounds=False, view=None, carry_relabel=0.0,
+                                                one_hot=None)
 #: each ``*_kwargs`` argument grouped over defaults: its defaults and the keys it accepts (None: the defaults' keys)
 GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
     "query_kwargs": (QUERY_DEFAULTS, None),
@@ -304,7 +306,10 @@ class HhP(BetweenEpisodes, DoubleDQN):
         outermost ring, which on MiniGrid's canvas only ever shows the border wall; None: all of it), ``carry_relabel``
         (``subgoal_learner="stacked"``: the share of a sub-goal's batch that, where the sub-goal carries an object,
         becomes steps taken with empty hands as they would have gone carrying it; the goal space's
-        :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`, MiniGrid's: turns and steps; 0: none)
+        :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`, MiniGrid's: turns and steps; 0: none), ``one_hot``
+        (discrete actions: the learners read each channel ``c`` of ``(H, W, C)`` integer codes as ``one_hot[c]``
+        one-hot indicators, 0 leaving it out; MiniGrid's canvas: ``[11, 6, 3]``, object, colour and state; None: the
+        codes as numbers)
     :param subpolicy_kwargs: arguments of the sub-goal learners, in SB3 DQN's names (discrete actions: over
         :data:`~sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWARGS`; ``PAPER_SUBPOLICY_KWARGS`` is the paper's learner;
         ``buffer_size`` is the shared replay's, in primitive transitions) or of each sub-goal's SB3 DDPG (continuous)
@@ -568,6 +573,10 @@ class HhP(BetweenEpisodes, DoubleDQN):
             if learner.get("carry_relabel"):
                 raise ValueError("subgoal_learner_kwargs['carry_relabel'] applies to the learners of discrete actions: "
                                  "leave it out for this env's DDPG sub-goal learners")
+            if learner.get("one_hot") is not None:
+                raise ValueError("subgoal_learner_kwargs['one_hot'] applies to the learners of discrete actions; this "
+                                 "env's sub-goal learners are DDPG models that read the observation as it is: leave "
+                                 "one_hot out")
             if learner.get("view") is not None:  # (models saved before the option have no key)
                 raise ValueError("subgoal_learner_kwargs['view'] applies to the learners of discrete actions; this env's "
                                  "sub-goal learners are DDPG models that read the whole observation: leave view out")

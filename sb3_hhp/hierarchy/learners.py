@@ -13,7 +13,7 @@ import ctypes
 import ctypes.util
 from collections import deque
 from collections.abc import Callable, Hashable
-from typing import Any, Optional
+from typing import Any, Optional, Sequence
 
 import numpy as np
 import torch as th
@@ -116,6 +116,32 @@ def view_cells(space: spaces.Space, view: Optional[int | str]) -> Optional[tuple
     return tuple(slice(length // 2 - view // 2, length // 2 + view // 2 + 1) for length in shape[:2])
 
 
+def one_hot_tables(space: spaces.Space, sizes: Optional[Sequence[int]]) -> Optional[list[tuple[int, np.ndarray]]]:
+    """Lookup tables that turn each channel ``c`` of ``(H, W, C)`` integer observations of ``space`` into ``sizes[c]``
+    one-hot indicators (0: the channel left out), after checking that they can: ``(channel, table)`` pairs, each table
+    ``(256, sizes[c])`` uint8 (a code at or past ``sizes[c]`` reads as all zeros). None: no encoding."""
+    if sizes is None:
+        return None
+    shape = getattr(space, "shape", None)
+    if not isinstance(space, spaces.Box) or len(shape) != 3 or space.dtype != np.uint8:
+        raise ValueError(f"one_hot (subgoal_learner_kwargs) needs (H, W, C) uint8 observations of integer codes, such as "
+                         f"MiniGrid's egocentric canvas; got {space}: leave one_hot out (None)")
+    sizes = list(sizes) if isinstance(sizes, (list, tuple)) else sizes
+    if (not isinstance(sizes, list) or len(sizes) != shape[2]
+            or any(isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 0 <= k <= 256 for k in sizes)
+            or not any(sizes)):
+        raise ValueError(f"one_hot (subgoal_learner_kwargs) must list, for each of the observation's {shape[2]} channels, "
+                         f"how many codes it takes (0 to 256; 0 leaves the channel out; MiniGrid: [11, 6, 3] for object, "
+                         f"colour and state), not all 0; got {sizes!r}")
+    tables = []
+    for channel, size in enumerate(sizes):
+        if size:
+            table = np.zeros((256, int(size)), dtype=np.uint8)
+            table[np.arange(size), np.arange(size)] = 1
+            tables.append((channel, table))
+    return tables
+
+
 def _mlp_layers(q_net: th.nn.Module) -> Optional[list[tuple[str, Any]]]:
     """The layers of an SB3 ``QNetwork`` that is a flattened input through Linear layers and parameter-free
     activations, as ``("linear", parameter prefix)`` / ``("activation", module)``; None for any other network."""
@@ -168,6 +194,10 @@ class StackedDQN:
     :param carry_relabel: the share of a drawn batch, for a sub-goal that carries an object, replaced where possible
         by steps taken with empty hands as they would have gone carrying it (``counterfactual``, the goal space's
         :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`), as one-step returns; 0: none
+    :param one_hot: the learners read each channel ``c`` of ``(H, W, C)`` integer observations (after ``view``) as
+        ``one_hot[c]`` one-hot indicators instead of its code (0 leaves the channel out); MiniGrid's canvas:
+        ``[11, 6, 3]`` (object, colour, state), ``[11, 0, 3]`` without colours. A ReLU unit tells "a door here" from
+        one input, where the codes put the door (4) between the wall (2) and the key (5). None: the codes
     """
 
     #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
@@ -193,6 +223,7 @@ class StackedDQN:
         view: Optional[int] = None,
         carry_relabel: float = 0.0,
         counterfactual: Optional[Callable] = None,
+        one_hot: Optional[Sequence[int]] = None,
     ) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
@@ -216,6 +247,7 @@ class StackedDQN:
                 raise ValueError(f"subpolicy_kwargs['{name}'] must be an integer >= 1 (counted in steps), got {kw[name]!r}")
         self.observation_space, self.action_space = observation_space, action_space
         self.view, self._cells = view, view_cells(observation_space, view)
+        self.one_hot, self._one_hot = one_hot, one_hot_tables(observation_space, one_hot)
         self.kwargs = kw
         self.lr, self.gamma = float(kw["learning_rate"]), float(kw["gamma"])
         self.batch_size, self.learning_starts = int(kw["batch_size"]), int(kw["learning_starts"])
@@ -246,6 +278,9 @@ class StackedDQN:
         if self._cells is not None:  # what the networks read: the central cells
             net_space = spaces.Box(observation_space.low[self._cells], observation_space.high[self._cells],
                                    dtype=observation_space.dtype)
+        if self._one_hot is not None:  # what the networks read: indicators
+            channels = sum(table.shape[1] for _, table in self._one_hot)
+            net_space = spaces.Box(0, 1, (*net_space.shape[:2], channels), np.uint8)
         self._transpose = is_image_space(net_space) and not is_image_space_channels_first(net_space)
         if self._transpose:
             h, w, c = net_space.shape
@@ -463,8 +498,12 @@ class StackedDQN:
 
     # ------------------------------------------------------------------ acting
     def _crop(self, obs: np.ndarray) -> np.ndarray:
-        """What the networks read of observations ``(..., H, W, C)``: the central cells with a ``view``, else all."""
-        return obs if self._cells is None else obs[(..., *self._cells, slice(None))]
+        """What the networks read of observations ``(..., H, W, C)``: the central cells with a ``view``, else all;
+        with ``one_hot``, as indicators."""
+        obs = obs if self._cells is None else obs[(..., *self._cells, slice(None))]
+        if self._one_hot is None:
+            return obs
+        return np.concatenate([table[obs[..., channel]] for channel, table in self._one_hot], axis=-1)
 
     def _tensor(self, obs: np.ndarray, cropped: bool = False) -> th.Tensor:
         """Observations as the networks' input tensor (``cropped``: already :meth:`_crop`-ped)."""
