@@ -8,6 +8,7 @@ from collections import Counter
 from typing import Any, Optional
 
 import gymnasium as gym
+from gymnasium import spaces
 import minigrid  # noqa: F401  (registers the MiniGrid envs)
 from minigrid.core.constants import OBJECT_TO_IDX
 import numpy as np
@@ -21,6 +22,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecFrameStack, VecNorm
 from sb3_hhp import HhP
 from sb3_hhp.goals import MiniGridGoalSpace, wrap_env
 from sb3_hhp.hhp.hhp import COMPONENTS_FILE, MOVED_ARGUMENTS
+from sb3_hhp.hierarchy.learners import OneHotCodes
 from sb3_hhp.hierarchy.options import EpisodeTrace
 from sb3_hhp.oracles import Label
 from sb3_hhp.preferences.store import PreferenceStore
@@ -547,8 +549,9 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
         (dict(env=EMPTY, subgoal_learner_kwargs=dict(view=4)), "view.*odd integer"),
         (dict(env=EMPTY, subgoal_learner_kwargs=dict(view=9)), "view 9 is larger than the observation's 7 x 7"),
         (dict(env=EMPTY, subgoal_learner_kwargs=dict(one_hot=[11, 6])), "one_hot.*each of the observation's 3 channels"),
-        (dict(env=EMPTY, subgoal_learner_kwargs=dict(one_hot=[0, 0, 0])), "one_hot.*not all 0"),
-        (dict(env=EMPTY, subgoal_learner_kwargs=dict(one_hot=[11, -1, 3])), "one_hot.*0 to 256"),
+        (dict(env=EMPTY, subgoal_learner_kwargs=dict(one_hot=[0, [], 0])), "one_hot.*not all empty"),
+        (dict(env=EMPTY, subgoal_learner_kwargs=dict(one_hot=[11, -1, 3])), "one_hot.*n from 0 to 256"),
+        (dict(env=EMPTY, subgoal_learner_kwargs=dict(one_hot=[[2, 2], 0, 3])), "one_hot.*distinct codes"),
     ],
 )
 def test_bad_arguments_raise_clear_errors(kwargs: dict, match: str) -> None:
@@ -570,6 +573,25 @@ def test_learners_with_a_view_read_the_cells_around_the_agent_and_save_and_load(
     assert loaded.subgoal_learner_kwargs["view"] == 3
     sequence = _rollout_observations(model, seed=3)
     assert _predictions(loaded, sequence) == _predictions(model, sequence)
+
+
+def test_one_hot_lists_the_codes_each_indicator_marks() -> None:
+    """one_hot: a count n marks codes 0 to n - 1, a list the codes it names in its order, 0 or [] leaves a channel out;
+    codes not listed read as all zeros; too many combinations of listed codes are refused with what to do."""
+    space = spaces.Box(0, 10, (1, 5, 3), np.uint8)
+    codes = OneHotCodes(space, [[2, 4, 5, 8], [], 3])
+    assert codes.n_indicators == 7
+    # a wall, a locked door (yellow), a key carried over an unlisted colour, a goal square, an empty cell
+    cells = np.array([[[2, 5, 0], [4, 4, 2], [5, 1, 0], [8, 1, 0], [1, 0, 0]]], dtype=np.uint8)
+    expected = np.array([[[1, 0, 0, 0, 1, 0, 0], [0, 1, 0, 0, 0, 0, 1], [0, 0, 1, 0, 1, 0, 0], [0, 0, 0, 1, 1, 0, 0],
+                          [0, 0, 0, 0, 1, 0, 0]]], dtype=np.float32)
+    encoded = codes.encode(cells)
+    assert encoded.dtype == np.float32 and encoded.tolist() == expected.tolist()
+    assert codes.encode(np.stack([cells, cells[:, ::-1]])).tolist() == [expected.tolist(), expected[:, ::-1].tolist()]
+    with pytest.raises(ValueError, match="one_hot.*uint8"):
+        OneHotCodes(spaces.Box(0, 1, (3, 3), np.float32), [2, 2, 2])
+    with pytest.raises(ValueError, match="combine 4784128 ways.*list fewer codes"):
+        OneHotCodes(space, [255, 255, 72])
 
 
 def test_one_hot_learners_read_each_code_as_indicators_and_save_and_load(tmp_path) -> None:

@@ -31,7 +31,7 @@ import json
 import pathlib
 import sys
 import time
-from typing import Any
+from typing import Any, Optional
 
 import gymnasium as gym
 import minigrid  # noqa: F401  (registers the MiniGrid envs)
@@ -44,7 +44,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
 from benchmarks.diagnostics.choice_trace import nearest_distance  # noqa: E402
 from benchmarks.speed import entry_kwargs  # noqa: E402
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
-from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS, StackedDQN, one_hot_tables, view_cells  # noqa: E402
+from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS, OneHotCodes, StackedDQN, view_cells  # noqa: E402
 
 OBJECTS = {"key": Key, "door": Door, "ball": Ball, "box": Box}
 #: the exploration schedule of SB3's DQN, which HhP's learners set with their own exploration_steps
@@ -91,26 +91,23 @@ class CenterCrop(gym.ObservationWrapper):
 
 
 class OneHot(gym.ObservationWrapper):
-    """Each cell's object id and state as one-hot indicators (11 + 3 channels, colour left out), as the sub-goal
-    learners read them with ``subgoal_learner_kwargs`` ``one_hot: [11, 0, 3]`` (:func:`one_hot_tables`), instead of
-    the integer codes."""
+    """The cells' codes as one-hot indicators of ``codes`` per channel, as the sub-goal learners read them with
+    ``subgoal_learner_kwargs`` ``one_hot`` (:class:`OneHotCodes`), instead of the integer codes."""
 
-    SIZES = [11, 0, 3]
-
-    def __init__(self, env: gym.Env) -> None:
+    def __init__(self, env: gym.Env, codes: list) -> None:
         super().__init__(env)
-        self.tables = one_hot_tables(env.observation_space, self.SIZES)
+        self.codes = OneHotCodes(env.observation_space, codes)
         shape = env.observation_space.shape
-        self.observation_space = gym.spaces.Box(0, 1, (*shape[:2], sum(self.SIZES)), np.uint8)
+        self.observation_space = gym.spaces.Box(0.0, 1.0, (*shape[:2], self.codes.n_indicators), np.float32)
 
     def observation(self, observation: np.ndarray) -> np.ndarray:
-        return np.concatenate([table[observation[..., channel]] for channel, table in self.tables], axis=-1)
+        return self.codes.encode(observation)
 
 
-def make_env(env_id: str, kind: str, max_steps: int, crop: int = 0, one_hot: bool = False) -> gym.Env:
+def make_env(env_id: str, kind: str, max_steps: int, crop: int = 0, one_hot: Optional[list] = None) -> gym.Env:
     env = wrap_env(gym.make(env_id))
     env = CenterCrop(env, crop) if crop else env
-    return FaceObject(OneHot(env) if one_hot else env, OBJECTS[kind], max_steps)
+    return FaceObject(OneHot(env, one_hot) if one_hot else env, OBJECTS[kind], max_steps)
 
 
 def start_distance(env: gym.Env, kind: type) -> int:
@@ -272,9 +269,9 @@ def main() -> None:
                              "in HhP's option loop), not by a fresh layout")
     parser.add_argument("--train-max-steps", type=int, default=0,
                         help="--learner hhp: the training envs' episode length (MiniGrid's max_steps; 0: the env's)")
-    parser.add_argument("--one-hot", action="store_true",
-                        help="the cells' object ids and states as one-hot indicators (OneHot, the learners' one_hot [11, 0, 3]), "
-                             "not integer codes")
+    parser.add_argument("--one-hot", type=json.loads, default=None, metavar="CODES",
+                        help="the cells as one-hot indicators of these codes per channel (JSON, as the learners' "
+                             "one_hot: [11, 0, 3] marks every object and state), not integer codes")
     parser.add_argument("--view", type=int, default=0, help="StackedDQN's view (odd; 0: the whole canvas)")
     parser.add_argument("--radius", type=int, default=7,
                         help="the greedy evaluation also splits its tries at this many cells from the agent to the "

@@ -307,9 +307,9 @@ class HhP(BetweenEpisodes, DoubleDQN):
         (``subgoal_learner="stacked"``: the share of a sub-goal's batch that, where the sub-goal carries an object,
         becomes steps taken with empty hands as they would have gone carrying it; the goal space's
         :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`, MiniGrid's: turns and steps; 0: none), ``one_hot``
-        (discrete actions: the learners read each channel ``c`` of ``(H, W, C)`` integer codes as ``one_hot[c]``
-        one-hot indicators, 0 leaving it out; MiniGrid's canvas: ``[11, 6, 3]``, object, colour and state; None: the
-        codes as numbers)
+        (discrete actions: the learners read each channel ``c`` of ``(H, W, C)`` uint8 codes as one-hot indicators of
+        the codes ``one_hot[c]``, a count n for codes 0 to n - 1 or a list of codes, 0 or ``[]`` leaving it out;
+        MiniGrid's canvas: ``[11, 6, 3]``, every object, colour and state; None: the codes as numbers)
     :param subpolicy_kwargs: arguments of the sub-goal learners, in SB3 DQN's names (discrete actions: over
         :data:`~sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWARGS`; ``PAPER_SUBPOLICY_KWARGS`` is the paper's learner;
         ``buffer_size`` is the shared replay's, in primitive transitions) or of each sub-goal's SB3 DDPG (continuous)

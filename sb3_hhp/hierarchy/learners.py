@@ -116,30 +116,72 @@ def view_cells(space: spaces.Space, view: Optional[int | str]) -> Optional[tuple
     return tuple(slice(length // 2 - view // 2, length // 2 + view // 2 + 1) for length in shape[:2])
 
 
-def one_hot_tables(space: spaces.Space, sizes: Optional[Sequence[int]]) -> Optional[list[tuple[int, np.ndarray]]]:
-    """Lookup tables that turn each channel ``c`` of ``(H, W, C)`` integer observations of ``space`` into ``sizes[c]``
-    one-hot indicators (0: the channel left out), after checking that they can: ``(channel, table)`` pairs, each table
-    ``(256, sizes[c])`` uint8 (a code at or past ``sizes[c]`` reads as all zeros). None: no encoding."""
-    if sizes is None:
+class OneHotCodes:
+    """Each channel ``c`` of ``(H, W, C)`` uint8 codes as one-hot indicators of the codes ``codes[c]`` (a count ``n``:
+    the codes 0 to n - 1; a list: those codes, in its order; 0 or ``[]``: the channel left out), checked against
+    ``space``; a code not listed reads as all zeros. :meth:`encode` looks each cell's combination of listed codes up
+    in one table of their indicator rows (a few times faster than an indicator array per channel).
+
+    :param space: the observations' space (a uint8 Box of shape ``(H, W, C)``)
+    :param codes: one entry per channel
+    """
+
+    #: most combinations of listed codes (with "none listed") the lookup table holds
+    MAX_COMBINATIONS = 65_536
+
+    def __init__(self, space: spaces.Space, codes: Sequence[Any]) -> None:
+        shape = getattr(space, "shape", None)
+        if not isinstance(space, spaces.Box) or len(shape) != 3 or space.dtype != np.uint8:
+            raise ValueError(f"one_hot (subgoal_learner_kwargs) needs (H, W, C) uint8 observations of integer codes, "
+                             f"such as MiniGrid's egocentric canvas; got {space}: leave one_hot out (None)")
+        channels = [self._listed(entry) for entry in codes] if isinstance(codes, (list, tuple)) else None
+        if channels is None or len(channels) != shape[2] or None in channels or not any(channels):
+            raise ValueError(f"one_hot (subgoal_learner_kwargs) must give, for each of the observation's {shape[2]} "
+                             f"channels, its codes: a count n (codes 0 to n - 1, n from 0 to 256; 0 leaves the channel "
+                             f"out) or a list of distinct codes 0-255 (MiniGrid: [11, 6, 3] for every object, colour and "
+                             f"state), not all empty; got {codes!r}")
+        used = [(channel, listed) for channel, listed in enumerate(channels) if listed]
+        sizes = [len(listed) + 1 for _, listed in used]  # each channel's listed codes and "none listed"
+        combinations = int(np.prod(sizes))
+        if combinations > self.MAX_COMBINATIONS:
+            raise ValueError(f"one_hot (subgoal_learner_kwargs) lists codes that combine {combinations} ways over the "
+                             f"channels (at most {self.MAX_COMBINATIONS}): list fewer codes")
+        self.n_indicators = sum(size - 1 for size in sizes)
+        self.channels = []  # (channel, its code -> place among its listed codes, stride in the combined index)
+        stride = 1
+        for (channel, listed), size in zip(used, sizes):
+            place = np.full(256, size - 1, dtype=np.int32)
+            place[listed] = np.arange(len(listed))
+            self.channels.append((channel, place, stride))
+            stride *= size
+        self.table = np.zeros((combinations, self.n_indicators), dtype=np.float32)  # combination -> indicators
+        combination = np.arange(combinations)
+        offset = 0
+        for (_, place, stride), size in zip(self.channels, sizes):
+            index = (combination // stride) % size
+            listed_here = index < size - 1
+            self.table[combination[listed_here], offset + index[listed_here]] = 1.0
+            offset += size - 1
+
+    @staticmethod
+    def _listed(entry: Any) -> Optional[list[int]]:
+        """The codes of one channel's entry, None where it is malformed."""
+        if isinstance(entry, (int, np.integer)) and not isinstance(entry, bool) and 0 <= entry <= 256:
+            return list(range(int(entry)))
+        if (isinstance(entry, (list, tuple)) and len(set(entry)) == len(entry)
+                and all(isinstance(code, (int, np.integer)) and not isinstance(code, bool) and 0 <= code <= 255
+                        for code in entry)):
+            return [int(code) for code in entry]
         return None
-    shape = getattr(space, "shape", None)
-    if not isinstance(space, spaces.Box) or len(shape) != 3 or space.dtype != np.uint8:
-        raise ValueError(f"one_hot (subgoal_learner_kwargs) needs (H, W, C) uint8 observations of integer codes, such as "
-                         f"MiniGrid's egocentric canvas; got {space}: leave one_hot out (None)")
-    sizes = list(sizes) if isinstance(sizes, (list, tuple)) else sizes
-    if (not isinstance(sizes, list) or len(sizes) != shape[2]
-            or any(isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 0 <= k <= 256 for k in sizes)
-            or not any(sizes)):
-        raise ValueError(f"one_hot (subgoal_learner_kwargs) must list, for each of the observation's {shape[2]} channels, "
-                         f"how many codes it takes (0 to 256; 0 leaves the channel out; MiniGrid: [11, 6, 3] for object, "
-                         f"colour and state), not all 0; got {sizes!r}")
-    tables = []
-    for channel, size in enumerate(sizes):
-        if size:
-            table = np.zeros((256, int(size)), dtype=np.uint8)
-            table[np.arange(size), np.arange(size)] = 1
-            tables.append((channel, table))
-    return tables
+
+    def encode(self, cells: np.ndarray) -> np.ndarray:
+        """``(..., H, W, C)`` uint8 codes as ``(..., H, W, n_indicators)`` float32 indicators."""
+        index = None
+        for channel, place, stride in self.channels:
+            part = np.take(place, cells[..., channel])
+            part = part * stride if stride > 1 else part
+            index = part if index is None else index + part
+        return np.take(self.table, index, axis=0)
 
 
 def _mlp_layers(q_net: th.nn.Module) -> Optional[list[tuple[str, Any]]]:
@@ -194,10 +236,12 @@ class StackedDQN:
     :param carry_relabel: the share of a drawn batch, for a sub-goal that carries an object, replaced where possible
         by steps taken with empty hands as they would have gone carrying it (``counterfactual``, the goal space's
         :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`), as one-step returns; 0: none
-    :param one_hot: the learners read each channel ``c`` of ``(H, W, C)`` integer observations (after ``view``) as
-        ``one_hot[c]`` one-hot indicators instead of its code (0 leaves the channel out); MiniGrid's canvas:
-        ``[11, 6, 3]`` (object, colour, state), ``[11, 0, 3]`` without colours. A ReLU unit tells "a door here" from
-        one input, where the codes put the door (4) between the wall (2) and the key (5). None: the codes
+    :param one_hot: the learners read each channel ``c`` of ``(H, W, C)`` uint8 codes (after ``view``) as one-hot
+        indicators of the codes ``one_hot[c]`` (a count n: codes 0 to n - 1; a list: those codes; 0 or ``[]``: the
+        channel left out) instead of its code as a number; MiniGrid's canvas: ``[11, 6, 3]`` (every object, colour and
+        state); ``[[2, 4, 5, 8], [], [1, 2]]``: walls, doors, keys, goal squares, closed and locked (DoorKey). A ReLU
+        unit tells "a door here" from one input, where the codes put the door (4) between the wall (2) and the key
+        (5). Each indicator is an input of the first layer, which costs that many times more. None: the codes
     """
 
     #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
@@ -247,7 +291,7 @@ class StackedDQN:
                 raise ValueError(f"subpolicy_kwargs['{name}'] must be an integer >= 1 (counted in steps), got {kw[name]!r}")
         self.observation_space, self.action_space = observation_space, action_space
         self.view, self._cells = view, view_cells(observation_space, view)
-        self.one_hot, self._one_hot = one_hot, one_hot_tables(observation_space, one_hot)
+        self.one_hot, self._one_hot = one_hot, None if one_hot is None else OneHotCodes(observation_space, one_hot)
         self.kwargs = kw
         self.lr, self.gamma = float(kw["learning_rate"]), float(kw["gamma"])
         self.batch_size, self.learning_starts = int(kw["batch_size"]), int(kw["learning_starts"])
@@ -279,8 +323,7 @@ class StackedDQN:
             net_space = spaces.Box(observation_space.low[self._cells], observation_space.high[self._cells],
                                    dtype=observation_space.dtype)
         if self._one_hot is not None:  # what the networks read: indicators
-            channels = sum(table.shape[1] for _, table in self._one_hot)
-            net_space = spaces.Box(0, 1, (*net_space.shape[:2], channels), np.uint8)
+            net_space = spaces.Box(0.0, 1.0, (*net_space.shape[:2], self._one_hot.n_indicators), np.float32)
         self._transpose = is_image_space(net_space) and not is_image_space_channels_first(net_space)
         if self._transpose:
             h, w, c = net_space.shape
@@ -498,16 +541,14 @@ class StackedDQN:
 
     # ------------------------------------------------------------------ acting
     def _crop(self, obs: np.ndarray) -> np.ndarray:
-        """What the networks read of observations ``(..., H, W, C)``: the central cells with a ``view``, else all;
-        with ``one_hot``, as indicators."""
-        obs = obs if self._cells is None else obs[(..., *self._cells, slice(None))]
-        if self._one_hot is None:
-            return obs
-        return np.concatenate([table[obs[..., channel]] for channel, table in self._one_hot], axis=-1)
+        """What the networks read of observations ``(..., H, W, C)``: the central cells with a ``view``, else all."""
+        return obs if self._cells is None else obs[(..., *self._cells, slice(None))]
 
     def _tensor(self, obs: np.ndarray, cropped: bool = False) -> th.Tensor:
-        """Observations as the networks' input tensor (``cropped``: already :meth:`_crop`-ped)."""
+        """Observations as the networks' input tensor (``cropped``: already :meth:`_crop`-ped), with ``one_hot`` as
+        indicators."""
         obs = obs if cropped else self._crop(obs)
+        obs = obs if self._one_hot is None else self._one_hot.encode(obs)
         obs = np.moveaxis(obs, -1, -3) if self._transpose else obs
         return th.as_tensor(np.ascontiguousarray(obs), device=self.device)
 
