@@ -291,7 +291,7 @@ class StackedDQN:
                 raise ValueError(f"subpolicy_kwargs['{name}'] must be an integer >= 1 (counted in steps), got {kw[name]!r}")
         self.observation_space, self.action_space = observation_space, action_space
         self.view, self._cells = view, view_cells(observation_space, view)
-        self.one_hot, self._one_hot = one_hot, None if one_hot is None else OneHotCodes(observation_space, one_hot)
+        self._one_hot = None if one_hot is None else OneHotCodes(observation_space, one_hot)
         self.kwargs = kw
         self.lr, self.gamma = float(kw["learning_rate"]), float(kw["gamma"])
         self.batch_size, self.learning_starts = int(kw["batch_size"]), int(kw["learning_starts"])
