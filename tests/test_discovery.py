@@ -60,6 +60,26 @@ def test_a_solved_task_and_optionally_the_state_before_it_are_always_candidates(
     assert _select(before, [SUCCESS_KEY, "a"], np.array([0.9, 0.1]), visits) == [0, 1]
 
 
+def test_the_percentile_of_new_states_ranks_only_what_could_become_a_sub_goal() -> None:
+    """A long episode spent mostly in sub-goals' situations ("a", "b"): with percentile 10 of all 20 states the two
+    candidates are "a" states and nothing is added; ranked among the states that could become a new sub-goal ("n" and
+    "m" are not sub-goals; "m" was visited once), the lowest of those ("n", rho 0.2, 8th lowest of the 20) is added."""
+    keys = ["a"] * 10 + ["b"] * 6 + ["n", "n", "m", "n"]
+    rho = np.array([-0.9, -0.8, -0.7, -0.6, -0.5, -0.4, -0.3, -0.2, -0.1, 0.0,
+                    0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 0.3, 0.2, -0.95, 0.4])
+    visits = Counter({"a": 50, "b": 50, "n": 3, "m": 1})
+    plain = SubgoalDiscovery(KeyedSpace(), percentile=10, seed=0)
+    assert _select(plain, keys, rho, visits, goal_keys=["a", "b"]) == []
+    new = SubgoalDiscovery(KeyedSpace(), percentile=10, seed=0, percentile_of="new")
+    assert _select(new, keys, rho, visits, goal_keys=["a", "b"]) == [17]
+    # the percentile is of the new states' count: 3 "n" states, percentile 50 -> the two lowest of them, max_new 2
+    two = SubgoalDiscovery(KeyedSpace(), percentile=50, max_new=2, seed=0, percentile_of="new")
+    assert _select(two, keys, rho, visits, goal_keys=["a", "b"]) == [17]  # the second candidate has the same key
+    assert _select(two, keys, rho, Counter({**visits, "m": 2}), goal_keys=["a", "b"]) == [18, 17]
+    # nothing new in the episode: nothing added
+    assert _select(new, keys, rho, visits, goal_keys=["a", "b", "n"]) == []
+
+
 def test_random_discovery_passes_the_same_gates() -> None:
     discovery = SubgoalDiscovery(KeyedSpace(), strategy="random", max_new=10, seed=0)
     visits = Counter({key: 5 for key in KEYS})
@@ -68,7 +88,8 @@ def test_random_discovery_passes_the_same_gates() -> None:
 
 
 @pytest.mark.parametrize("kwargs", [dict(strategy="novelty"), dict(percentile=0), dict(min_visits=0),
-                                    dict(similarity_threshold=1.5), dict(max_new=0)])
+                                    dict(similarity_threshold=1.5), dict(max_new=0),
+                                    dict(percentile_of="all")])
 def test_bad_settings_are_refused(kwargs: dict) -> None:
     with pytest.raises(ValueError):
         SubgoalDiscovery(KeyedSpace(), **kwargs)

@@ -1101,12 +1101,20 @@ def test_a_model_saved_with_the_ungrouped_arguments_loads_as_it_was_trained(tmp_
     assert (model.predictor.n_masks, model.predictor.dropout) == (7, 0.2)
     assert (model.discovery.similarity_threshold, model.discovery.min_visits, model.discovery.percentile) == (0.3, 3, 5.0)
     assert (model.subpolicies.max_updates, model.subpolicies.exploration_steps) == (5, 123)
-    assert model.discovery_kwargs == dict(percentile=5.0, min_visits=3, similarity_threshold=0.3, before_success=False)
+    assert model.discovery_kwargs == dict(percentile=5.0, min_visits=3, similarity_threshold=0.3, before_success=False,
+                                          percentile_of="visited")  # options added since: their defaults, as trained
     assert not any(hasattr(model, name) for name in MOVED_ARGUMENTS)  # grouped, not kept twice
     model.learn(200, reset_num_timesteps=False)
     model.save(tmp_path / "again")  # saved again, it loads with the same settings through the new arguments
     again = HhP.load(tmp_path / "again")
     assert (again.predictor.n_masks, again.subpolicies.max_updates, again.query_selector.threshold) == (7, 5, 0.1)
+
+
+def test_discovery_percentile_of_reaches_csd() -> None:
+    model = HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0"), seed=0, discovery_kwargs={"percentile_of": "new"})
+    assert model.discovery.percentile_of == "new" and HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0")).discovery.percentile_of == "visited"
+    with pytest.raises(ValueError, match="percentile_of must be 'visited' or 'new'"):
+        HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0"), discovery_kwargs={"percentile_of": "states"})
 
 
 def test_predictor_min_updates_reaches_the_predictor() -> None:

@@ -10,6 +10,12 @@ random visited state passes the same visit and similarity gates. A state where t
 curiosity to be worth pursuing. With ``before_success``, so is the state visited just before it (e.g. facing the
 goal square): the last step of a solved task, which CSD may never rank among the lowest novelty progress while
 successes are rare, and without which the learner of "task solved" must cross the whole last room on its own.
+
+Which states the percentile is taken over (``percentile_of``): "visited" (default) ranks every state of the episode,
+so a situation met for a few steps of a long episode (KeyCorridor's "carrying the key, facing the locked door") is
+rarely among its lowest 5 %, behind the many steps of situations that are sub-goals already; "new" ranks only the
+states that could become a new sub-goal (a key that is not a sub-goal's and has the visits), the lowest percentile
+of the states the paper's check would let through.
 """
 
 from collections import Counter
@@ -33,9 +39,12 @@ class SubgoalDiscovery:
     :param seed: seed of the random strategy and tie-breaking
     :param before_success: the state visited just before a success is a candidate too (CSD only; it passes the same
         visit and similarity gates)
+    :param percentile_of: "visited" (every state of the episode) or "new" (the states whose key is not a sub-goal's
+        and has ``min_visits``): the states whose novelty progress the percentile ranks (CSD only)
     """
 
     before_success = False  # what a discovery pickled before the option reads
+    percentile_of = "visited"
 
     def __init__(
         self,
@@ -47,6 +56,7 @@ class SubgoalDiscovery:
         max_new: int = 1,
         seed: Optional[int] = None,
         before_success: bool = False,
+        percentile_of: str = "visited",
     ) -> None:
         if strategy not in ("csd", "random"):
             raise ValueError(f"discovery strategy must be 'csd' or 'random', got {strategy!r}")
@@ -56,6 +66,8 @@ class SubgoalDiscovery:
             raise ValueError(f"min_visits must be >= 1, got {min_visits}")
         if not 0 <= similarity_threshold <= 1:
             raise ValueError(f"similarity_threshold (b_similarity) must be in [0, 1], got {similarity_threshold}")
+        if percentile_of not in ("visited", "new"):
+            raise ValueError(f"percentile_of must be 'visited' or 'new', got {percentile_of!r}")
         if max_new < 1:
             raise ValueError(f"max_new must be >= 1, got {max_new}")
         self.goal_space = goal_space
@@ -65,6 +77,7 @@ class SubgoalDiscovery:
         self.similarity_threshold = similarity_threshold
         self.max_new = max_new
         self.before_success = bool(before_success)
+        self.percentile_of = percentile_of
         self.rng = np.random.default_rng(seed)
 
     def select(
@@ -93,8 +106,13 @@ class SubgoalDiscovery:
                 raise ValueError("CSD needs one novelty-progress value per visited state")
             # lowest `percentile` percent of rho; random tie-breaking so equal scores are not taken in visit order
             order = np.lexsort((self.rng.random(n), rho))
-            n_candidates = max(1, int(np.ceil(n * self.percentile / 100.0)))
-            candidates = order[:n_candidates]
+            ranked = order
+            if self.percentile_of == "new":  # only the states that could become a new sub-goal
+                existing = set(goal_keys)
+                ranked = np.array([index for index in order
+                                   if keys[index] not in existing and visits[keys[index]] >= self.min_visits], dtype=np.int64)
+            n_candidates = max(1, int(np.ceil(len(ranked) * self.percentile / 100.0)))
+            candidates = ranked[:n_candidates]
             # the task solved is the one situation that needs no curiosity to be worth a sub-goal
             solved = [index for index in order if keys[index] == SUCCESS_KEY][:1]
             if self.before_success and solved and solved[0] > 0:

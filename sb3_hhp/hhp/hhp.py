@@ -93,9 +93,10 @@ PREDICTOR_DEFAULTS: dict[str, Any] = dict(hidden_dim=256, dropout=0.1, n_masks=5
 #: every key ``predictor_kwargs`` may hold (HhP sets ``buffer_size``, ``device`` and ``seed`` unless given)
 PREDICTOR_KEYS = frozenset(inspect.signature(PreferencePredictor.__init__).parameters) - {"self", "observation_space"}
 #: ``discovery_kwargs``: CSD's (:class:`~sb3_hhp.discovery.csd.SubgoalDiscovery`): lowest percentile of novelty
-#: progress, visits a key needs, the similarity gate b_similarity, and whether the state just before a success is a
-#: candidate too
-DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similarity_threshold=0.5, before_success=False)
+#: progress, visits a key needs, the similarity gate b_similarity, whether the state just before a success is a
+#: candidate too, and which states the percentile ranks
+DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similarity_threshold=0.5, before_success=False,
+                                          percentile_of="visited")
 #: ``subgoal_learner_kwargs``: how the sub-goal learners learn, beside their SB3 arguments (``subpolicy_kwargs``):
 #: own steps over which a subpolicy's epsilon decays; whether every transition also trains the other sub-goals'
 #: learners, relabelled with their rewards; whether they take their gradient steps on every primitive step, not
@@ -291,7 +292,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
     :param discovery_kwargs: CSD's, over :data:`DISCOVERY_DEFAULTS`: ``similarity_threshold`` (the paper's
         b_similarity, in [0, 1]), ``percentile`` (lowest percentile of novelty progress), ``min_visits`` (visits a
         state's sub-goal key needs before it may become a sub-goal), ``before_success`` (the state visited just
-        before a success is a candidate too, like the success itself)
+        before a success is a candidate too, like the success itself), ``percentile_of`` ("visited": the percentile
+        ranks every state of the episode; "new": only those whose key is not a sub-goal's yet and has the visits)
     :param subgoal_learner_kwargs: how the sub-goal learners learn, over :data:`SUBGOAL_LEARNER_DEFAULTS`:
         ``exploration_steps`` (own steps over which a subpolicy's epsilon decays), ``share_experience`` (every
         transition also trains, off-policy, the other sub-goals' learners, relabelled with their rewards),
