@@ -1112,7 +1112,8 @@ def test_a_model_saved_with_the_ungrouped_arguments_loads_as_it_was_trained(tmp_
 
 def test_discovery_percentile_of_reaches_csd() -> None:
     model = HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0"), seed=0, discovery_kwargs={"percentile_of": "new"})
-    assert model.discovery.percentile_of == "new" and HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0")).discovery.percentile_of == "visited"
+    assert model.discovery.percentile_of == "new"
+    assert HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0")).discovery.percentile_of == "visited"
     with pytest.raises(ValueError, match="percentile_of must be 'visited' or 'new'"):
         HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0"), discovery_kwargs={"percentile_of": "states"})
 

@@ -44,7 +44,7 @@ class SubgoalDiscovery:
     """
 
     before_success = False  # what a discovery pickled before the option reads
-    percentile_of = "visited"
+    percentile_of = "visited"  # likewise: discoveries pickled before it ranked every visited state
 
     def __init__(
         self,
@@ -110,7 +110,8 @@ class SubgoalDiscovery:
             if self.percentile_of == "new":  # only the states that could become a new sub-goal
                 existing = set(goal_keys)
                 ranked = np.array([index for index in order
-                                   if keys[index] not in existing and visits[keys[index]] >= self.min_visits], dtype=np.int64)
+                                   if keys[index] not in existing and visits[keys[index]] >= self.min_visits],
+                                  dtype=np.int64)
             n_candidates = max(1, int(np.ceil(len(ranked) * self.percentile / 100.0)))
             candidates = ranked[:n_candidates]
             # the task solved is the one situation that needs no curiosity to be worth a sub-goal
