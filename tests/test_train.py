@@ -281,3 +281,9 @@ def test_the_papers_four_minigrid_tasks_have_entries_that_build(env_id: str) -> 
         # the settings of its development run: open doors stay open for the learners, the learners read 15x15 cells
         assert model.goal_space.keep_doors_open and model.success_bonus == "best"
         assert model.subpolicies.view == 15
+    if env_id == "MiniGrid-KeyCorridorS4R3-v0":
+        # the settings its evaluation seeds learnt with: no door closed to reach "facing a closed door", CSD over the
+        # states that could become sub-goals, the learners reading walls, doors, keys, balls, closed, locked as indicators
+        assert model.goal_space.keep_doors_open and model.success_bonus == "best"
+        assert model.discovery.percentile_of == "new"
+        assert model.subpolicies._one_hot is not None and model.subpolicies._one_hot.n_indicators == 6
