@@ -30,6 +30,9 @@ SMALL: dict[str, Any] = dict(
 )
 #: the stacked learners as the ``minigrid`` entry of hyperparams/hhp.yml runs them (grouped rounds, the inner view)
 ENTRY_LEARNERS = dict(train_shared=True, max_updates=6, exploration_steps=500, grouped_rounds=True, view="inner")
+#: ... reading the cells as indicators, as the KeyCorridorS4R3 entry's learners do (walls, doors, keys, balls; closed,
+#: locked)
+ONE_HOT_LEARNERS = dict(ENTRY_LEARNERS, one_hot=[[2, 4, 5, 6], [], [1, 2]])
 
 
 def tensors(model: HhP) -> dict[str, list[th.Tensor]]:
@@ -56,16 +59,20 @@ def moved(before: dict[str, list[th.Tensor]], after: dict[str, list[th.Tensor]])
             or len(found) != len(before.get(name, []))}
 
 
-@pytest.mark.parametrize("learner, learner_kwargs", [("stacked", ENTRY_LEARNERS), ("heads", {})])
+@pytest.mark.parametrize("learner, learner_kwargs",
+                         [("stacked", ENTRY_LEARNERS), ("stacked", ONE_HOT_LEARNERS), ("heads", {})],
+                         ids=["stacked", "stacked-one-hot", "heads"])
 def test_hhp_trains_on_cuda_and_acts_the_same_on_the_cpu(tmp_path, learner: str, learner_kwargs: dict) -> None:
     env = make_vec_env(DOORKEY, n_envs=4, wrapper_class=wrap_env, seed=0)
     model = HhP("MlpPolicy", env, device=DEVICE, seed=0, subgoal_learner=learner,
                 subgoal_learner_kwargs=learner_kwargs, **SMALL)
     assert model.device.type == DEVICE
+    assert (model.subpolicies._one_hot is not None) == ("one_hot" in learner_kwargs)  # the cells read as indicators
     before = {name: [tensor.detach().clone() for tensor in found] for name, found in tensors(model).items()}
     model.learn(4_000)
     assert len(model.subgoals) >= 2 and model.query_selector.used >= 1
     assert devices(model) == {DEVICE}
+    assert {tensor.device.type for tensor in model.subpolicies.policy(0).parameters()} == {DEVICE}  # as SB3 would hold it
     trained = moved(before, tensors(model))
     assert {"meta-controller", "predictor", "rnd"} <= trained
     assert any(name.startswith("learners.") for name in trained), "no sub-goal learner's parameters moved"

@@ -134,7 +134,8 @@ def test_a_walk_that_comes_back_takes_its_best_untried_action(break_cycles: bool
     obs, _ = env.reset(seed=0)
     model = make_model(discovery="none", subgoals=[obs], break_cycles=break_cycles)
     q_row = np.array([3.0, 1.0, 2.0, 0.5, 0.4, 0.3, 0.2])  # greedy: turn left, round and round in one cell
-    monkeypatch.setattr(model.subpolicies, "q_values", lambda goals, batch: th.as_tensor(np.tile(q_row, (len(goals), 1))))
+    monkeypatch.setattr(model.subpolicies, "q_values",
+                        lambda goals, batch: th.as_tensor(np.tile(q_row, (len(goals), 1)), device=model.device))
     monkeypatch.setattr(model.subpolicies, "allowed_actions", lambda batch: None)
     monkeypatch.setattr(model.subpolicies, "exploration_rate", lambda goal: 0.0)
     monkeypatch.setattr("sb3_hhp.hhp.hhp.option_terminal", lambda space, key, goal, steps, limit: (False, steps >= limit))
@@ -177,7 +178,7 @@ def test_a_meta_controller_back_in_a_state_takes_its_best_untried_choice(trained
     monkeypatch.setattr(trained, "break_cycles", break_cycles)
     monkeypatch.setattr(trained, "exploration_rate", 0.0)
     # every existing sub-goal choosable everywhere: the test is of the rule, whatever the goal space would mask
-    monkeypatch.setattr(trained, "action_mask", lambda observations: np.asarray(trained.valid_actions))
+    monkeypatch.setitem(vars(trained), "action_mask", lambda observations: np.asarray(trained.valid_actions))
     monkeypatch.setattr("sb3_hhp.hhp.hhp.option_terminal", lambda space, key, goal, steps, limit: (steps > 0, False))
     obs, other = observations()[:1], observations()[1:2]
     with th.no_grad():
@@ -317,15 +318,15 @@ def test_max_centred_bonus_subtracts_the_best_choosable_score(trained: HhP, monk
     """With ``center_bonus="max"`` a sub-goal the mask rules out in the state does not set the level: the bonus is
     b(s, g) - max over the choosable g' (and g itself)."""
     replay = trained.replay_buffer.sample(8)
-    goals = replay.actions.long().flatten().numpy()
-    states = replay.observations.numpy().astype(np.uint8)
+    goals = replay.actions.long().flatten().cpu().numpy()
+    states = replay.observations.cpu().numpy().astype(np.uint8)
     goal_obs = trained.goal_space.features(trained.goal_obs)
     scores = np.stack([trained.predictor.score(trained.goal_space.features(state), goal_obs) for state in states])
     n_goals = len(goal_obs)
     mask = np.ones((len(states), trained.action_space.n), dtype=bool)
     top = scores.argmax(axis=1)
     mask[np.arange(len(states)), top] = top == goals  # rule out each state's best sub-goal unless it was chosen
-    monkeypatch.setattr(trained, "action_mask", lambda observations: mask)
+    monkeypatch.setitem(vars(trained), "action_mask", lambda observations: mask)
     monkeypatch.setattr(trained, "center_bonus", "max")
     best = np.where(mask[:, :n_goals], scores, -np.inf).max(axis=1)
     np.testing.assert_allclose(trained.preference_bonus(states, goals), scores[np.arange(len(goals)), goals] - best, atol=1e-6)
@@ -337,7 +338,7 @@ def test_with_success_bonus_best_the_task_solved_scores_as_the_best_other_choosa
     """``success_bonus="best"``: the task's own goal gets, in each state, the best score among the other choosable
     sub-goals, so with ``center_bonus="max"`` its bonus is 0 and the other bonuses are taken from that best."""
     replay = trained.replay_buffer.sample(8)
-    states = replay.observations.numpy().astype(np.uint8)
+    states = replay.observations.cpu().numpy().astype(np.uint8)
     goal_obs = trained.goal_space.features(trained.goal_obs)
     n_goals = len(goal_obs)
     assert n_goals >= 3
@@ -346,7 +347,7 @@ def test_with_success_bonus_best_the_task_solved_scores_as_the_best_other_choosa
     monkeypatch.setattr(HhP, "success_goal", property(lambda self: success))
     mask = np.ones((len(states), trained.action_space.n), dtype=bool)
     mask[:, (success + 1) % n_goals] = False  # one other sub-goal not choosable anywhere
-    monkeypatch.setattr(trained, "action_mask", lambda observations: mask)
+    monkeypatch.setitem(vars(trained), "action_mask", lambda observations: mask)
     others = mask[:, :n_goals] & (np.arange(n_goals) != success)
     best_other = np.where(others, scores, -np.inf).max(axis=1)
     goals = np.arange(len(states)) % n_goals
@@ -383,8 +384,8 @@ def test_the_bonus_of_a_sampled_choice_is_cached_until_the_predictor_or_the_subg
     ``preference_bonus``, and scored again once the predictor has trained or a row holds a new choice."""
     replay = trained.replay_buffer.sample(16)
     rows = np.asarray(replay.indices)
-    goals = replay.actions.long().flatten().numpy()
-    states = replay.observations.numpy().astype(np.uint8)
+    goals = replay.actions.long().flatten().cpu().numpy()
+    states = replay.observations.cpu().numpy().astype(np.uint8)
     calls = []
     original = trained.preference_bonus
     trained.preference_bonus = lambda s, g: calls.append(len(s)) or original(s, g)
@@ -413,14 +414,14 @@ def test_meta_reward_is_eq3_with_the_predictor_bonus(trained: HhP) -> None:
     one (b - max_g' p_hat(s, g'), never positive) with ``center_bonus="max"``."""
     assert len(trained.predictor) > 0
     replay = trained.replay_buffer.sample(16)
-    goals = replay.actions.long().flatten().numpy()
-    states = replay.observations.numpy().astype(np.uint8)
+    goals = replay.actions.long().flatten().cpu().numpy()
+    states = replay.observations.cpu().numpy().astype(np.uint8)
     goal_obs = trained.goal_space.features(trained.goal_obs)  # the predictor reads the goal space's features
     assert trained.predictor_input == "auto" and goal_obs.ndim == 2
     # p_hat(s, g') for every sub-goal g', one state at a time
     scores = np.stack([trained.predictor.score(trained.goal_space.features(state), goal_obs) for state in states])
     chosen = scores[np.arange(len(goals)), goals]
-    r_e = replay.rewards.numpy().flatten()
+    r_e = replay.rewards.cpu().numpy().flatten()
     beta, sigma = trained.beta, trained.return_normalizer.sigma
     assert sigma > 0
     # "max": minus the best score among the sub-goals choosable in the state (the chosen one counts too)
@@ -431,7 +432,7 @@ def test_meta_reward_is_eq3_with_the_predictor_bonus(trained: HhP) -> None:
     try:
         for trained.center_bonus, bonus in ((True, chosen - scores.mean(axis=1)), ("max", chosen - best), (False, chosen)):
             expected = beta * r_e + (1 - beta) * bonus / sigma  # eq. 3
-            np.testing.assert_allclose(trained._rewards(replay).numpy().flatten(), expected, rtol=1e-4, atol=1e-5)
+            np.testing.assert_allclose(trained._rewards(replay).cpu().numpy().flatten(), expected, rtol=1e-4, atol=1e-5)
             assert not np.allclose(expected, beta * r_e)  # the bonus really enters
     finally:
         trained.center_bonus = center
@@ -463,8 +464,8 @@ def _assert_same_model(a: HhP, b: HhP, obs: np.ndarray) -> None:
         assert old_a.num_steps == old_b.num_steps
     np.testing.assert_allclose(a.rnd.novelty_progress(obs), b.rnd.novelty_progress(obs), rtol=1e-5, atol=1e-7)
     with th.no_grad():
-        q_a = a.q_net(a.policy.obs_to_tensor(obs)[0]).numpy()
-        q_b = b.q_net(b.policy.obs_to_tensor(obs)[0]).numpy()
+        q_a = a.q_net(a.policy.obs_to_tensor(obs)[0]).cpu().numpy()
+        q_b = b.q_net(b.policy.obs_to_tensor(obs)[0]).cpu().numpy()
     np.testing.assert_allclose(q_a, q_b, rtol=1e-6)
 
 
@@ -611,7 +612,7 @@ def test_one_hot_learners_read_each_code_as_indicators_and_save_and_load(tmp_pat
     assert by_hand[..., :11].sum() == by_hand[..., 11:].sum() == cells.shape[0] * 9  # one of each in every cell
     for goal in range(len(model.subgoals)):
         with th.no_grad():
-            expected = model.subpolicies.policy(goal).q_net(th.as_tensor(by_hand))
+            expected = model.subpolicies.policy(goal).q_net(th.as_tensor(by_hand, device=model.device))
         got = model.subpolicies.q_values(np.full(len(obs), goal), obs)
         assert th.allclose(got, expected, atol=1e-5)
     model.save(tmp_path / "one_hot")
@@ -990,7 +991,7 @@ def test_meta_controller_reads_goal_space_features_or_observations() -> None:
     states = observations(seeds=tuple(range(40)))
     features = model.goal_space.features(states)
     with th.no_grad():
-        q_values = model.q_net(model.policy.obs_to_tensor(states)[0]).numpy()
+        q_values = model.q_net(model.policy.obs_to_tensor(states)[0]).cpu().numpy()
     same = [(i, j) for i in range(len(states)) for j in range(i) if (features[i] == features[j]).all() and (states[i] != states[j]).any()]
     assert same, "no two layouts with the same description among the first states"
     for i, j in same:
@@ -1175,15 +1176,15 @@ def test_subgoal_set_grows_past_the_initial_capacity() -> None:
     model.add_subgoal(goal_space.key(states[1]), states[1], None)
     assert int(model.action_space.n) == 2 and model.valid_actions.tolist() == [True, True]
     with th.no_grad():
-        q_before = model.q_net(model.policy.obs_to_tensor(obs)[0]).numpy()
+        q_before = model.q_net(model.policy.obs_to_tensor(obs)[0]).cpu().numpy()
 
     model.add_subgoal(goal_space.key(states[2]), states[2], None)
     assert int(model.action_space.n) == 4
     assert int(model.env.action_space.n) == 4
     assert model.valid_actions.tolist() == [True, True, True, False]
     with th.no_grad():
-        q_after = model.q_net(model.policy.obs_to_tensor(obs)[0]).numpy()
-        q_target = model.q_net_target(model.policy.obs_to_tensor(obs)[0]).numpy()
+        q_after = model.q_net(model.policy.obs_to_tensor(obs)[0]).cpu().numpy()
+        q_target = model.q_net_target(model.policy.obs_to_tensor(obs)[0]).cpu().numpy()
     np.testing.assert_allclose(q_after[:, :2], q_before, rtol=1e-6)
     np.testing.assert_allclose(q_target[:, :2], q_before, rtol=1e-6)
     assert len(model.subpolicies) == 3

@@ -132,6 +132,7 @@ def test_atari_ids_train_from_the_atari_entry_on_frames(tmp_path: Path) -> None:
 def test_fetch_ids_train_from_the_fetch_entry_with_the_scripted_oracle(tmp_path: Path) -> None:
     """A Fetch id takes the fetch entry (the flat observation, the Fetch goal space, DDPG subpolicies); the
     scripted oracle answers from the positions; success is the env's own ``is_success``."""
+    pytest.importorskip("gymnasium_robotics", reason='needs the [fetch] extra: pip install "sb3_hhp[fetch]"')
     summary = train.run(
         ["--env", "FetchReach-v4", "--oracle", "scripted", "-n", "300", "--seed", "4", "--eval-episodes", "2",
          "--eval-freq", "-1", "--num-threads", "1", "--verbose", "0", "-f", str(tmp_path), "--hyperparams", "predictor_kwargs:dict(n_masks=10)"]

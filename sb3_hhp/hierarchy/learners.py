@@ -764,8 +764,8 @@ class StackedDQN:
 
     # ------------------------------------------------------------------ SB3 views, save / load
     def policy(self, goal: int) -> DQNPolicy:
-        """Sub-goal ``goal``'s learner as an SB3 ``DQNPolicy`` (its online and target networks)."""
-        policy = self._make_policy()
+        """Sub-goal ``goal``'s learner as an SB3 ``DQNPolicy`` (its online and target networks), on the learners' device."""
+        policy = self._make_policy().to(self.device)
         policy.q_net.load_state_dict({name: value.clone() for name, value in self._unflatten(self.params[goal]).items()})
         policy.q_net_target.load_state_dict({name: value.clone() for name, value in self._unflatten(self.target[goal]).items()})
         return policy
@@ -1022,8 +1022,9 @@ class SharedHeadsDQN(StackedDQN):
         return self.last_loss
 
     def policy(self, goal: int) -> DQNPolicy:
-        """Sub-goal ``goal``'s learner as an SB3 ``DQNPolicy``: the shared trunk and its own head as the last layer."""
-        policy = self._make_policy()
+        """Sub-goal ``goal``'s learner as an SB3 ``DQNPolicy``: the shared trunk and its own head as the last layer, on the
+        learners' device."""
+        policy = self._make_policy().to(self.device)
         for q_net, network in ((policy.q_net, self.network), (policy.q_net_target, self.target_network)):
             state = {f"features_extractor.{k}": v for k, v in network.features_extractor.state_dict().items()}
             state.update({f"q_net.{k}": v for k, v in network.trunk.state_dict().items()})
