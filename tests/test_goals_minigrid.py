@@ -735,6 +735,16 @@ def test_keep_doors_open_masks_the_toggle_that_would_close_the_door_in_front() -
     assert mask[:, toggle].tolist() == [False, True, True]
     assert np.delete(mask, toggle, axis=1).all()
     assert MiniGridGoalSpace(keep_doors_open=True).action_mask(obs[0]).shape == (7,)  # one state
+    # the goal space named for doors of several colours (ObstructedMaze) keeps them open and tells their colours apart
+    env = wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1"))
+    named = make_goal_space("minigrid_color_open_doors", env)
+    assert named.use_color and named.keep_doors_open
+    np.testing.assert_array_equal(named.action_mask(obs), mask)
+    other = obs.copy()
+    other[0, 3, 2, 1] = 3  # the same open door in front, another colour
+    assert named.key(obs[0]) != named.key(other[0])
+    assert make_goal_space("minigrid_open_doors", env).key(obs[0]) == make_goal_space("minigrid_open_doors", env).key(other[0])
+    env.close()
 
 
 def _doors(base) -> list:
