@@ -332,8 +332,9 @@ class StackedDQN:
         if policy_class is None:
             raise ValueError(f"Sub-goal learners use 'MlpPolicy' or 'CnnPolicy', got {policy!r}")
         policy_kwargs = {k: v for k, v in dict(kw["policy_kwargs"] or {}).items() if k != "optimizer_kwargs"}
-        self._make_policy = lambda: policy_class(net_space, action_space, lambda _: self.lr, **policy_kwargs)
-        self._template = self._make_policy().q_net.to(self.device)
+        # an SB3 policy of the learners' shape on their device: the template, fresh weights, and policy(g)'s views
+        self._make_policy = lambda: policy_class(net_space, action_space, lambda _: self.lr, **policy_kwargs).to(self.device)
+        self._template = self._make_policy().q_net
         self._normalize_images = self._template.normalize_images
         self._scale_images = is_image_space(net_space) and self._normalize_images  # as SB3's preprocess_obs scales
         named = list(self._template.named_parameters())
@@ -473,7 +474,7 @@ class StackedDQN:
             if self.seed is not None:
                 th.manual_seed(self.seed + goal)
             fresh = self._make_policy().q_net
-        flat = th.cat([value.detach().reshape(-1) for _, value in fresh.named_parameters()]).to(self.device)
+        flat = th.cat([value.detach().reshape(-1) for _, value in fresh.named_parameters()])
         self.params[goal] = flat
         self.target[goal] = flat
         self.exp_avg[goal] = 0.0
@@ -765,7 +766,7 @@ class StackedDQN:
     # ------------------------------------------------------------------ SB3 views, save / load
     def policy(self, goal: int) -> DQNPolicy:
         """Sub-goal ``goal``'s learner as an SB3 ``DQNPolicy`` (its online and target networks), on the learners' device."""
-        policy = self._make_policy().to(self.device)
+        policy = self._make_policy()
         policy.q_net.load_state_dict({name: value.clone() for name, value in self._unflatten(self.params[goal]).items()})
         policy.q_net_target.load_state_dict({name: value.clone() for name, value in self._unflatten(self.target[goal]).items()})
         return policy
@@ -1024,7 +1025,7 @@ class SharedHeadsDQN(StackedDQN):
     def policy(self, goal: int) -> DQNPolicy:
         """Sub-goal ``goal``'s learner as an SB3 ``DQNPolicy``: the shared trunk and its own head as the last layer, on the
         learners' device."""
-        policy = self._make_policy().to(self.device)
+        policy = self._make_policy()
         for q_net, network in ((policy.q_net, self.network), (policy.q_net_target, self.target_network)):
             state = {f"features_extractor.{k}": v for k, v in network.features_extractor.state_dict().items()}
             state.update({f"q_net.{k}": v for k, v in network.trunk.state_dict().items()})
