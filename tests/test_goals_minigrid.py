@@ -425,6 +425,36 @@ def test_choosable_subgoals_are_one_skill_away() -> None:
     assert not colored.choosable((key_, 4, empty, 0, 0), (empty, 0, key_, 1, 0))  # it drops the key it carries
 
 
+def test_opening_the_box_in_front_is_a_choice_of_what_it_holds() -> None:
+    """ObstructedMaze hides its keys in boxes, and an observation shows no box's contents: in front of a box,
+    "facing a key" is a choice (the toggle leaves the key in the box's place) though no key lies within reach, and
+    the toggle does reach it; facing a box is no such choice elsewhere, and a box opens into what can be picked
+    up, never a door."""
+    space = make_goal_space("minigrid_open_doors", wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1")))
+    key_, box, ball, door, empty = (OBJECT_TO_IDX[name] for name in ("key", "box", "ball", "door", "empty"))
+    env = wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1"))
+    env.reset(seed=0)
+    base = env.unwrapped
+    bx, by = _find(base, "box")
+    assert base.grid.get(bx, by).contains.type == "key"
+    direction, (dx, dy) = next((d, DIR_TO_VEC[d]) for d in range(4)
+                               if base.grid.get(bx - DIR_TO_VEC[d][0], by - DIR_TO_VEC[d][1]) is None)
+    _place(base, (bx - dx, by - dy), direction)
+    obs = env.observation(None)
+    facing_box, facing_key = space.key(obs), (empty, key_, 0)
+    present = space.present(obs)
+    assert facing_box == (empty, box, 0)
+    assert (key_, 0) not in present  # both keys are in boxes
+    assert space.choosable(facing_box, facing_key, present)
+    assert space.choosable(facing_box, (empty, ball, 0), present)  # what a box holds is not seen
+    assert not space.choosable(facing_box, (empty, door, STATE_TO_IDX["open"]), present)  # a door is no content
+    assert not space.choosable((empty, ball, 0), facing_key, present)  # only the box in front opens into one
+    assert space.choosable((key_, box, 0), (key_, key_, 0), present)  # a box opens whatever the agent carries
+    obs, *_ = env.step(Actions.toggle)
+    assert space.key(obs) == facing_key
+    env.close()
+
+
 def test_walks_are_choosable_only_to_objects_within_reach() -> None:
     """With what the state holds (``present``), a walk is a choice only to an object the agent can reach without
     opening anything: not "facing the locked door" while the key lies in the only way to it, nor once the door is

@@ -42,6 +42,7 @@ PICKABLE = {OBJECT_TO_IDX[name] for name in ("key", "ball", "box")}
 #: cells the agent walks through (an open door too; lava ends the episode, so it is not among them)
 PASSABLE = {OBJECT_TO_IDX[name] for name in ("empty", "floor", "goal")}
 DOOR, GOAL, OPEN, LOCKED = OBJECT_TO_IDX["door"], OBJECT_TO_IDX["goal"], STATE_TO_IDX["open"], STATE_TO_IDX["locked"]
+BOX = OBJECT_TO_IDX["box"]
 #: in :meth:`MiniGridGoalSpace.present`: the grid has a goal square, and none is within reach
 GOAL_OUT_OF_REACH = "goal out of reach"
 #: in :meth:`MiniGridGoalSpace.present`: the grid has no goal square, so the task ends with a pick-up (KeyCorridor,
@@ -351,7 +352,8 @@ class MiniGridGoalSpace(GoalSpace):
         choices. With ``present`` (:meth:`present`), a walk is choosable only to an object within reach in that
         state ("facing the locked door" not once it is open, nothing behind a locked door), opening the door in
         front always (closing it never: no task needs it, and a loop of opening and closing succeeds at every
-        choice), and "task solved" only while a goal square is within reach or, in a grid with
+        choice), opening the box in front always (the agent then faces what it held: any object one can pick up,
+        since no observation shows it before), and "task solved" only while a goal square is within reach or, in a grid with
         no goal square (the task ends with a pick-up), only with empty hands in front of an object one can pick
         up. "Facing a wall / an empty cell" is never worth a choice of its own, and "carrying the key, facing
         the locked door" is not chosen before the key is carried: such choices ask a subpolicy for two skills
@@ -377,6 +379,9 @@ class MiniGridGoalSpace(GoalSpace):
             # (a toggle opens a locked or closed door; closing one is no choice: no MiniGrid task needs a door
             # closed, and an open-close loop succeeds at every choice)
             toggle = goal_front == front and goal_object[-1] == OPEN and key[2 * front_at] != OPEN
+            # a toggle of the box in front leaves what it holds in its place, which no observation shows before
+            # (ObstructedMaze's keys): facing any object one can pick up is then one skill away
+            toggle |= front[0] == BOX and goal_front[0] in PICKABLE and goal_front[0] != BOX
             if present is None:
                 return True
             if len(goal_key) > 2 * front_at + 1:  # count_open_doors: how many doors are open once it is reached
