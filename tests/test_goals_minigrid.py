@@ -1,6 +1,8 @@
 """MiniGrid goal space: the egocentric observation, sub-goal keys after real actions, images, and the
 scripted oracle's plan and preferences (sb3_hhp.goals.minigrid, sb3_hhp.oracles.scripted)."""
 
+from types import SimpleNamespace
+
 import gymnasium as gym
 import minigrid  # noqa: F401  (registers the MiniGrid envs)
 import numpy as np
@@ -11,7 +13,7 @@ from minigrid.core.world_object import Ball, Key, Wall
 
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
 from sb3_hhp.goals.minigrid import GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, NO_GOAL_SQUARE, OPEN_DOORS
-from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query
+from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query, scripted
 from sb3_hhp.oracles.registry import make_oracle
 from sb3_hhp.oracles.scripted import plan_keys, plan_steps
 
@@ -575,10 +577,9 @@ def test_features_are_one_hots_of_carried_front_and_the_objects_present() -> Non
     assert MiniGridGoalSpace(use_color=True).features(obs).shape[1] == features.shape[1] + 2 * len(COLORS)
 
 
-def test_plans_open_boxes_for_what_they_hold_and_stop_at_their_time_limit() -> None:
-    """ObstructedMaze: the key to the locked door lies in a box, and a ball blocks the door."""
-    import time
-
+def test_plans_open_boxes_for_what_they_hold_and_stop_at_their_time_limit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """ObstructedMaze: the key to the locked door lies in a box, and a ball blocks the door. The time limit is
+    checked on a clock of the test's own (a millisecond a reading), so the machine's load cannot move it."""
     env = gym.make("MiniGrid-ObstructedMaze-1Q-v1")
     env.reset(seed=0)
     goal_space = MiniGridGoalSpace()
@@ -597,9 +598,17 @@ def test_plans_open_boxes_for_what_they_hold_and_stop_at_their_time_limit() -> N
     assert keys.index((key, OBJECT_TO_IDX["door"], STATE_TO_IDX["locked"])) > facing_box
     assert (ball, EMPTY, 0) in keys  # the ball that blocked the door carried away
     # without the boxes' contents opening one leaves nothing: no plan, and the search stops at its time limit
-    began = time.perf_counter()
+    readings = []
+
+    def clock() -> float:
+        readings.append(None)
+        return 0.001 * len(readings)
+
+    monkeypatch.setattr(scripted, "time", SimpleNamespace(perf_counter=clock))
     assert plan_keys({**facts, "boxes": []}, goal_space, max_seconds=0.1) is None
-    assert time.perf_counter() - began < 0.6
+    # one reading to set the deadline, then one every 256 states until one is past it (the 102nd, at 0.102 s):
+    # stopped by the clock, neither sooner (running out of states) nor later
+    assert len(readings) == 102
     with pytest.raises(ValueError, match="max_seconds"):
         MiniGridScriptedOracle(max_seconds=0)
 
