@@ -432,9 +432,9 @@ def test_opening_the_box_in_front_is_a_choice_of_what_it_holds() -> None:
     "facing a key" is a choice (the toggle leaves the key in the box's place) though no key lies within reach, and
     the toggle does reach it; facing a box is no such choice elsewhere, and a box opens into what can be picked
     up, never a door."""
-    space = make_goal_space("minigrid_open_doors", wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1")))
     key_, box, ball, door, empty = (OBJECT_TO_IDX[name] for name in ("key", "box", "ball", "door", "empty"))
     env = wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1"))
+    space = make_goal_space("minigrid_open_doors", env)
     env.reset(seed=0)
     base = env.unwrapped
     bx, by = _find(base, "box")

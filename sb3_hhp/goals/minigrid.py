@@ -352,8 +352,8 @@ class MiniGridGoalSpace(GoalSpace):
         choices. With ``present`` (:meth:`present`), a walk is choosable only to an object within reach in that
         state ("facing the locked door" not once it is open, nothing behind a locked door), opening the door in
         front always (closing it never: no task needs it, and a loop of opening and closing succeeds at every
-        choice), opening the box in front always (the agent then faces what it held: any object one can pick up,
-        since no observation shows it before), and "task solved" only while a goal square is within reach or, in a grid with
+        choice), opening the box in front always (the agent then faces what it held, a key or a ball: no
+        observation shows which before), and "task solved" only while a goal square is within reach or, in a grid with
         no goal square (the task ends with a pick-up), only with empty hands in front of an object one can pick
         up. "Facing a wall / an empty cell" is never worth a choice of its own, and "carrying the key, facing
         the locked door" is not chosen before the key is carried: such choices ask a subpolicy for two skills
@@ -380,7 +380,7 @@ class MiniGridGoalSpace(GoalSpace):
             # closed, and an open-close loop succeeds at every choice)
             toggle = goal_front == front and goal_object[-1] == OPEN and key[2 * front_at] != OPEN
             # a toggle of the box in front leaves what it holds in its place, which no observation shows before
-            # (ObstructedMaze's keys): facing any object one can pick up is then one skill away
+            # (ObstructedMaze's keys): facing a key or a ball is then one skill away
             toggle |= front[0] == BOX and goal_front[0] in PICKABLE and goal_front[0] != BOX
             if present is None:
                 return True
