@@ -1,6 +1,7 @@
 import io
 import math
 import os
+import threading
 import time
 
 import cv2
@@ -260,9 +261,13 @@ def test_terminal_submit_does_not_block():
     read_fd, write_fd = os.pipe()
     with os.fdopen(read_fd, "r") as reader, os.fdopen(write_fd, "w") as writer:
         oracle = TerminalOracle(input_stream=reader, output_stream=io.StringIO())
-        start = time.time()
-        oracle.submit([image_query(0), image_query(1)])
-        assert time.time() - start < 0.5  # nobody has typed anything yet
+        # nobody has typed anything yet: a submit that read its replies on the caller's thread would wait for them
+        # forever, so it runs on a thread of its own that must end (the bound is generous: it fails a blocking submit,
+        # not a slow machine)
+        submitter = threading.Thread(target=oracle.submit, args=([image_query(0), image_query(1)],), daemon=True)
+        submitter.start()
+        submitter.join(timeout=30.0)
+        assert not submitter.is_alive()
         assert oracle.pending() == 2 and oracle.collect() == []
         time.sleep(0.1)
         assert oracle.collect() == []
