@@ -67,6 +67,7 @@ def test_the_shipped_sweeps_parse():
     assert doorkey.eval_episodes == 100
     ablations = load_sweep(EXPERIMENTS / "minigrid_ablations.yml")
     assert ablations.name == "minigrid_tasks"  # its rows join the four tasks' table
+    assert {e.env for e in ablations.experiments} == {"MiniGrid-KeyCorridorS4R3-v0"}  # the task HhP learns
     assert {e.variant for e in ablations.experiments} == {
         "hhp_rho0.1", "hhp_rho0.2", "hhp_no_preferences", "hhp_no_curiosity", "hhp_random_discovery"}
     assert all(ablations.is_hhp(e.variant) for e in ablations.experiments) and not ablations.is_hhp("ppo")
