@@ -181,3 +181,8 @@ def test_cnn_policy_on_flat_observations_names_the_policy_to_use() -> None:
 def test_a_learner_view_on_ddpg_subgoals_names_the_fix() -> None:
     with pytest.raises(ValueError, match="view.*DDPG.*leave view out"):
         HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(view=3))
+
+
+def test_a_run_clock_on_ddpg_subgoals_names_the_fix() -> None:
+    with pytest.raises(ValueError, match="exploration_run_steps.*DDPG.*leave it out"):
+        HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(exploration_run_steps=1000))

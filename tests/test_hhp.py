@@ -622,6 +622,15 @@ def test_one_hot_learners_read_each_code_as_indicators_and_save_and_load(tmp_pat
     assert _predictions(loaded, sequence) == _predictions(model, sequence)
 
 
+def test_exploration_run_steps_reaches_the_learners_and_saves(tmp_path) -> None:
+    """subgoal_learner_kwargs exploration_run_steps: the stacked learners' second exploration clock, kept by save/load."""
+    model = make_model(subgoal_learner_kwargs=dict(exploration_run_steps=2_000))
+    assert model.subpolicies.exploration_run_steps == 2_000
+    model.save(tmp_path / "run_clock")
+    assert HhP.load(tmp_path / "run_clock").subpolicies.exploration_run_steps == 2_000
+    assert make_model().subpolicies.exploration_run_steps is None  # the default: own steps only
+
+
 def test_carry_relabel_reaches_the_learners_replay_and_saves(tmp_path) -> None:
     """subgoal_learner_kwargs carry_relabel: the stacked learners' replay draws with the goal space's counterfactual;
     the heads learner (one batch for all) and values outside [0, 1] are refused before training."""

@@ -322,6 +322,37 @@ def test_epsilon_decays_with_a_subgoals_own_steps() -> None:
     assert learners.exploration_rate(0) == pytest.approx(0.05)
 
 
+def test_epsilon_also_decays_with_the_run_steps_since_a_subgoal_was_added() -> None:
+    learners = small_learners(exploration_steps=10, exploration_run_steps=100, train_shared=True)
+    learners.add("A")
+    assert learners.exploration_rate(0) == pytest.approx(1.0)
+    for _ in range(40):  # 40 primitive steps while another sub-goal (none here: -1) acts: no own step of "A"
+        learners.observe(np.zeros((1, 3), np.float32), np.zeros(1, np.int64), np.zeros((1, 3), np.float32), ["x"],
+                         np.zeros(1, bool), np.zeros(1, bool), np.zeros(1, bool), np.full(1, -1, np.int64),
+                         np.zeros(1, np.float32))
+    assert learners.own_steps[0] == 0 and learners.ticks[0] == 40
+    assert learners.exploration_rate(0) == pytest.approx(1.0 + 0.4 * (0.05 - 1.0))  # the run's clock, 40 of 100
+    learners.own_steps[0] = 6  # the own clock further along (6 of 10) sets the rate
+    assert learners.exploration_rate(0) == pytest.approx(1.0 + 0.6 * (0.05 - 1.0))
+    learners.ticks[0] = 1_000
+    assert learners.exploration_rate(0) == pytest.approx(0.05)
+    own_only = small_learners(exploration_steps=10, train_shared=True)
+    own_only.add("A")
+    own_only.ticks[0] = 1_000
+    assert own_only.exploration_rate(0) == pytest.approx(1.0)  # by default the own steps alone
+
+
+@pytest.mark.parametrize("value", [0, -5, 2.5, True])
+def test_exploration_run_steps_is_checked(value) -> None:
+    with pytest.raises(ValueError, match="exploration_run_steps"):
+        small_learners(exploration_run_steps=value, train_shared=True)
+
+
+def test_exploration_run_steps_needs_learners_that_learn_from_every_step() -> None:
+    with pytest.raises(ValueError, match="train_shared=True"):
+        small_learners(exploration_run_steps=100, train_shared=False)
+
+
 def test_state_dict_round_trip_and_older_saves_are_refused() -> None:
     learners = small_learners()
     for goal in ("A", "B"):

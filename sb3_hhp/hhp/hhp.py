@@ -98,13 +98,15 @@ PREDICTOR_KEYS = frozenset(inspect.signature(PreferencePredictor.__init__).param
 DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similarity_threshold=0.5, before_success=False,
                                           percentile_of="visited")
 #: ``subgoal_learner_kwargs``: how the sub-goal learners learn, beside their SB3 arguments (``subpolicy_kwargs``):
-#: own steps over which a subpolicy's epsilon decays; whether every transition also trains the other sub-goals'
+#: own steps over which a subpolicy's epsilon decays, and the run's steps since it was added over which it decays too
+#: (None: own steps only); whether every transition also trains the other sub-goals'
 #: learners, relabelled with their rewards; whether they take their gradient steps on every primitive step, not
 #: only while they act (None: True for discrete actions, False for DDPG sub-goals, a model each); most learners
 #: updated in one round (``subgoal_learner="stacked"``; None: all); the learning rounds of one step of the envs in one
 #: call; the cells around the agent the learners read (None: the whole observation); the one-hot encoding of each
 #: channel the learners read (None: its integer codes)
-SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(exploration_steps=5_000, share_experience=True, train_shared=None,
+SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(exploration_steps=5_000, exploration_run_steps=None,
+                                                share_experience=True, train_shared=None,
                                                 max_updates=8, grouped_rounds=False, view=None, carry_relabel=0.0,
                                                 one_hot=None)
 #: each ``*_kwargs`` argument grouped over defaults: its defaults and the keys it accepts (None: the defaults' keys)
@@ -295,7 +297,10 @@ class HhP(BetweenEpisodes, DoubleDQN):
         before a success is a candidate too, like the success itself), ``percentile_of`` ("visited": the percentile
         ranks every state of the episode; "new": only those whose key is not a sub-goal's yet and has the visits)
     :param subgoal_learner_kwargs: how the sub-goal learners learn, over :data:`SUBGOAL_LEARNER_DEFAULTS`:
-        ``exploration_steps`` (own steps over which a subpolicy's epsilon decays), ``share_experience`` (every
+        ``exploration_steps`` (own steps over which a subpolicy's epsilon decays), ``exploration_run_steps``
+        (``subgoal_learner="stacked"`` or ``"heads"`` with ``train_shared``: the primitive steps since a sub-goal was
+        added over which its epsilon decays too, the lower rate acting, so a sub-goal seldom chosen stops acting at
+        random; None: own steps only), ``share_experience`` (every
         transition also trains, off-policy, the other sub-goals' learners, relabelled with their rewards),
         ``train_shared`` (every sub-goal takes its gradient steps on every primitive step, at its own ``train_freq``,
         not only while it acts; the heads learner always does; None: True for discrete actions, False for DDPG
@@ -572,6 +577,9 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 action_mask=self.goal_space.action_mask, counterfactual=self.goal_space.carried_counterfactual, **learner,
             )
         else:
+            if learner.get("exploration_run_steps") is not None:
+                raise ValueError("subgoal_learner_kwargs['exploration_run_steps'] applies to the learners of discrete "
+                                 "actions: this env's DDPG sub-goal learners explore over their own steps; leave it out")
             if learner.get("carry_relabel"):
                 raise ValueError("subgoal_learner_kwargs['carry_relabel'] applies to the learners of discrete actions: "
                                  "leave it out for this env's DDPG sub-goal learners")

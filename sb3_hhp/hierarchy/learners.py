@@ -213,6 +213,10 @@ class StackedDQN:
         ``train_shared``), ``replay_buffer_kwargs=dict(off_policy_lower_bound=True)`` adds the lower bound
     :param alpha: weight of the intrinsic reward in eq. 6
     :param exploration_steps: own steps over which a sub-goal's epsilon decays to its final value
+    :param exploration_run_steps: with ``train_shared``, a second clock: a sub-goal's epsilon also decays over the
+        primitive steps (of all envs) since it was added, and the learner explores at the lower of the two rates. A
+        sub-goal the meta-controller seldom chooses (the last walks of a long plan) then stops acting at random once
+        the run has gone on that long, its greedy policy having learnt from every learner's steps; None: own steps only
     :param share_experience: every sub-goal learns from every transition (relabelled); False: only from its own
     :param train_shared: every sub-goal takes a learning tick on every primitive step, not only while it acts
     :param n_envs: number of env streams stepped together
@@ -256,6 +260,7 @@ class StackedDQN:
         subpolicy_kwargs: Optional[dict[str, Any]] = None,
         alpha: float = 0.5,
         exploration_steps: int = 5_000,
+        exploration_run_steps: Optional[int] = None,
         share_experience: bool = True,
         train_shared: bool = False,
         n_envs: int = 1,
@@ -280,6 +285,15 @@ class StackedDQN:
         self.rounds = 0  # learning rounds so far
         if exploration_steps < 1:
             raise ValueError(f"exploration_steps must be >= 1, got {exploration_steps}")
+        if exploration_run_steps is not None:
+            if isinstance(exploration_run_steps, bool) or int(exploration_run_steps) != exploration_run_steps \
+                    or exploration_run_steps < 1:
+                raise ValueError("exploration_run_steps (subgoal_learner_kwargs) must be an integer >= 1 or None, got "
+                                 f"{exploration_run_steps!r}")
+            if not (train_shared or self._shared_priorities):
+                raise ValueError("exploration_run_steps (subgoal_learner_kwargs) counts the steps every learner learns "
+                                 "from: it needs train_shared=True (without it a learner learns only from its own steps, "
+                                 "and its exploration is all it has)")
         unknown = set(subpolicy_kwargs or {}) - _USED - _IGNORED
         if unknown:
             raise ValueError(f"Unknown subpolicy_kwargs {sorted(unknown)}: the sub-goal learners take {sorted(_USED)}")
@@ -300,6 +314,7 @@ class StackedDQN:
         self.eps_initial, self.eps_final = float(kw["exploration_initial_eps"]), float(kw["exploration_final_eps"])
         self.max_grad_norm, self.double_q = float(kw["max_grad_norm"]), bool(kw["double_q"])
         self.exploration_steps, self.train_shared = int(exploration_steps), bool(train_shared)
+        self.exploration_run_steps = None if exploration_run_steps is None else int(exploration_run_steps)
         self.device = th.device(device)
         self.seed = seed
         replay_kwargs = dict(kw.get("replay_buffer_kwargs") or {})
@@ -527,8 +542,12 @@ class StackedDQN:
         self.replay = replay
 
     def exploration_rate(self, goal: int) -> float:
-        """Epsilon of sub-goal ``goal``: linear from the initial to the final value over ``exploration_steps`` own steps."""
+        """Epsilon of sub-goal ``goal``: linear from the initial to the final value over ``exploration_steps`` own steps
+        or, with ``exploration_run_steps``, over that many primitive steps since it was added (its learning ticks,
+        one a primitive step with ``train_shared``), whichever is further along."""
         fraction = min(1.0, self.own_steps[goal] / self.exploration_steps)
+        if self.exploration_run_steps is not None:
+            fraction = max(fraction, min(1.0, self.ticks[goal] / self.exploration_run_steps))
         return self.eps_initial + fraction * (self.eps_final - self.eps_initial)
 
     def record_outcome(self, goal: int, success: bool) -> None:
