@@ -100,10 +100,11 @@ DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similari
 #: ``subgoal_learner_kwargs``: how the sub-goal learners learn, beside their SB3 arguments (``subpolicy_kwargs``):
 #: own steps over which a subpolicy's epsilon decays, and the run's steps since it was added over which it decays too
 #: (None: own steps only); whether every transition also trains the other sub-goals' learners, relabelled with their
-#: rewards; whether they take their gradient steps on every primitive step, not only while they act (None: True for discrete actions, False for DDPG sub-goals, a model each); most learners
-#: updated in one round (``subgoal_learner="stacked"``; None: all); the learning rounds of one step of the envs in one
-#: call; the cells around the agent the learners read (None: the whole observation); the one-hot encoding of each
-#: channel the learners read (None: its integer codes)
+#: rewards; whether they take their gradient steps on every primitive step, not only while they act (None: True for
+#: discrete actions, False for DDPG sub-goals, a model each); most learners updated in one round
+#: (``subgoal_learner="stacked"``; None: all); the learning rounds of one step of the envs in one call; the cells
+#: around the agent the learners read (None: the whole observation); the one-hot encoding of each channel the
+#: learners read (None: its integer codes)
 SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(exploration_steps=5_000, exploration_run_steps=None,
                                                 share_experience=True, train_shared=None,
                                                 max_updates=8, grouped_rounds=False, view=None, carry_relabel=0.0,
