@@ -47,17 +47,22 @@ def model_file(path: str, env_id: str) -> pathlib.Path:
     return pathlib.Path(read_checkpoint(str(run_folder))["model"])
 
 
-def success_rates(model: Any, env_id: str, seed: int, episodes: int, modes: tuple[str, ...]) -> dict[str, float]:
+def run_episodes(model: Any, env_id: str, seeds: list[int], deterministic: bool) -> dict[str, Any]:
+    """One episode per seed on fresh envs of ``env_id`` wrapped as for training (:func:`sb3_hhp.train.evaluate`)."""
     import gymnasium as gym
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     def make_envs(n: int) -> Any:
         return DummyVecEnv([lambda: wrap_env(gym.make(env_id)) for _ in range(n)])
 
+    return evaluate(model, make_envs, seeds, deterministic=deterministic)
+
+
+def success_rates(model: Any, env_id: str, seed: int, episodes: int, modes: tuple[str, ...]) -> dict[str, float]:
     seeds = eval_seeds(seed, episodes)
     rates = {}
     for name in modes:
-        results = evaluate(model, make_envs, seeds, deterministic=name == "deterministic")
+        results = run_episodes(model, env_id, seeds, deterministic=name == "deterministic")
         rates[name] = sum(results["successes"]) / len(seeds)
         rates[f"mean_return_{name}"] = sum(results["returns"]) / len(seeds)
     return rates

@@ -131,6 +131,12 @@ def test_goal_trees_refresh_ancestors_lazily_to_the_sums_of_a_rebuilt_tree() -> 
     assert totals[0] > 0 and totals[1] > 0 and totals[2] == 0  # tree 2 took none of the last runs
 
 
+def observe_one(learners: StackedDQN, acting: int) -> None:
+    """One primitive step of one env in state "x", sub-goal ``acting`` acting (-1: none), nothing ended, no curiosity."""
+    learners.observe(np.zeros((1, 3), np.float32), np.zeros(1, np.int64), np.zeros((1, 3), np.float32), ["x"],
+                     np.zeros(1, bool), np.zeros(1, bool), np.zeros(1, bool), np.array([acting]), np.zeros(1, np.float32))
+
+
 def small_learners(**kwargs) -> StackedDQN:
     sub_kwargs = dict(policy_kwargs=dict(net_arch=[8]), batch_size=4, learning_starts=4, train_freq=2, gamma=0.9,
                       target_update_interval=5, learning_rate=0.01, max_grad_norm=0.5, n_steps=1)
@@ -244,8 +250,7 @@ def test_updates_follow_the_train_frequency_in_one_call_whatever_the_number_of_s
         fill(learners.replay, ["x"] * 3, acting=[0] * 3)
         learners.own_steps[:] = 0
         for step in range(10):
-            learners.observe(np.zeros((1, 3), np.float32), np.array([0]), np.zeros((1, 3), np.float32), ["x"],
-                             np.array([False]), np.array([False]), np.array([False]), np.array([1]), np.zeros(1, np.float32))
+            observe_one(learners, acting=1)
         # a tick per step for every sub-goal: an update round every 2 ticks, each one call for all sub-goals
         assert calls == [n_goals] * 5
         assert learners.own_steps.tolist() == [0, 10] + [0] * (n_goals - 2)
@@ -281,8 +286,7 @@ def test_a_round_updates_at_most_max_updates_subgoals_the_pursued_first_then_the
                         lambda plan, first_round: calls.extend(g.tolist() for g in plan) or original(plan, first_round))
     fill(learners.replay, ["x"] * 3, acting=[0] * 3)
     for step in range(12):  # an update round every 2 steps: 6 rounds; sub-goal 5 is pursued throughout
-        learners.observe(np.zeros((1, 3), np.float32), np.array([0]), np.zeros((1, 3), np.float32), ["x"],
-                         np.array([False]), np.array([False]), np.array([False]), np.array([5]), np.zeros(1, np.float32))
+        observe_one(learners, acting=5)
     # 5 every round, then the two that waited longest (ties: the lower id), so every sub-goal gets its turn
     assert calls == [[0, 1, 5], [2, 3, 5], [4, 5, 6], [0, 1, 5], [2, 3, 5], [4, 5, 6]]
     assert learners.n_updates.tolist() == [2, 2, 2, 2, 2, 6, 2]
@@ -307,8 +311,7 @@ def test_freed_memory_is_handed_back_every_trim_every_rounds(monkeypatch: pytest
     learners.add("A")
     fill(learners.replay, ["x"] * 8, acting=[0] * 8)
     for _ in range(12):  # a round every 2 steps (train_freq): 6 more rounds
-        learners.observe(np.zeros((1, 3), np.float32), np.zeros(1, np.int64), np.zeros((1, 3), np.float32), ["x"],
-                         np.zeros(1, bool), np.zeros(1, bool), np.zeros(1, bool), np.zeros(1, np.int64), np.zeros(1, np.float32))
+        observe_one(learners, acting=0)
     assert learners.rounds >= 6 and calls == [r for r in range(1, learners.rounds + 1) if r % 5 == 0]
 
 
@@ -327,9 +330,7 @@ def test_epsilon_also_decays_with_the_run_steps_since_a_subgoal_was_added() -> N
     learners.add("A")
     assert learners.exploration_rate(0) == pytest.approx(1.0)
     for _ in range(40):  # 40 primitive steps while another sub-goal (none here: -1) acts: no own step of "A"
-        learners.observe(np.zeros((1, 3), np.float32), np.zeros(1, np.int64), np.zeros((1, 3), np.float32), ["x"],
-                         np.zeros(1, bool), np.zeros(1, bool), np.zeros(1, bool), np.full(1, -1, np.int64),
-                         np.zeros(1, np.float32))
+        observe_one(learners, acting=-1)
     assert learners.own_steps[0] == 0 and learners.ticks[0] == 40
     assert learners.exploration_rate(0) == pytest.approx(1.0 + 0.4 * (0.05 - 1.0))  # the run's clock, 40 of 100
     learners.own_steps[0] = 6  # the own clock further along (6 of 10) sets the rate

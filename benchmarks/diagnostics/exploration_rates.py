@@ -18,15 +18,13 @@ import json
 import pathlib
 import sys
 
-import gymnasium as gym
 import numpy as np
 import torch as th
-from stable_baselines3.common.vec_env import DummyVecEnv
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
+from benchmarks.evaluate import run_episodes  # noqa: E402
 from sb3_hhp import HhP  # noqa: E402
-from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
-from sb3_hhp.train import evaluate  # noqa: E402
+from sb3_hhp.goals import register_minigrid_tasks  # noqa: E402
 
 
 def learners_table(model: HhP) -> list[dict]:
@@ -40,10 +38,7 @@ def learners_table(model: HhP) -> list[dict]:
 
 
 def stochastic_success(model: HhP, env_id: str, seeds: list[int]) -> dict:
-    def make_envs(n: int) -> DummyVecEnv:
-        return DummyVecEnv([lambda: wrap_env(gym.make(env_id)) for _ in range(n)])
-
-    results = evaluate(model, make_envs, seeds, deterministic=False)
+    results = run_episodes(model, env_id, seeds, deterministic=False)
     return dict(success=float(np.mean(results["successes"])), mean_length=float(np.mean(results["lengths"])))
 
 

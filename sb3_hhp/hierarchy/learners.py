@@ -200,6 +200,12 @@ def _mlp_layers(q_net: th.nn.Module) -> Optional[list[tuple[str, Any]]]:
     return layers
 
 
+def _check_optional_count(name: str, value: Any) -> None:
+    """``subgoal_learner_kwargs[name]``: a whole number >= 1, or None."""
+    if value is not None and (isinstance(value, bool) or int(value) != value or value < 1):
+        raise ValueError(f"{name} (subgoal_learner_kwargs) must be an integer >= 1 or None, got {value!r}")
+
+
 class StackedDQN:
     """Every sub-goal's Double DQN learner, stacked, over one shared replay of primitive transitions.
 
@@ -276,24 +282,18 @@ class StackedDQN:
     ) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
-        if max_updates is not None and (isinstance(max_updates, bool) or int(max_updates) != max_updates
-                                        or max_updates < 1):
-            raise ValueError(f"max_updates (subgoal_learner_kwargs) must be an integer >= 1 or None, got {max_updates!r}")
+        _check_optional_count("max_updates", max_updates)
         self.max_updates = None if max_updates is None else int(max_updates)
         self.action_mask = action_mask  # the goal space's (GoalSpace.action_mask): actions no learner takes in a state
         self.grouped_rounds = bool(grouped_rounds)
         self.rounds = 0  # learning rounds so far
         if exploration_steps < 1:
             raise ValueError(f"exploration_steps must be >= 1, got {exploration_steps}")
-        if exploration_run_steps is not None:
-            if isinstance(exploration_run_steps, bool) or int(exploration_run_steps) != exploration_run_steps \
-                    or exploration_run_steps < 1:
-                raise ValueError("exploration_run_steps (subgoal_learner_kwargs) must be an integer >= 1 or None, got "
-                                 f"{exploration_run_steps!r}")
-            if not (train_shared or self._shared_priorities):
-                raise ValueError("exploration_run_steps (subgoal_learner_kwargs) counts the steps every learner learns "
-                                 "from: it needs train_shared=True (without it a learner learns only from its own steps, "
-                                 "and its exploration is all it has)")
+        _check_optional_count("exploration_run_steps", exploration_run_steps)
+        if exploration_run_steps is not None and not (train_shared or self._shared_priorities):
+            raise ValueError("exploration_run_steps (subgoal_learner_kwargs) counts the steps every learner learns "
+                             "from: it needs train_shared=True (without it a learner learns only from its own steps, "
+                             "and its exploration is all it has)")
         unknown = set(subpolicy_kwargs or {}) - _USED - _IGNORED
         if unknown:
             raise ValueError(f"Unknown subpolicy_kwargs {sorted(unknown)}: the sub-goal learners take {sorted(_USED)}")

@@ -23,11 +23,10 @@ import numpy as np
 from minigrid.core.constants import DIR_TO_VEC, OBJECT_TO_IDX, STATE_TO_IDX
 
 from sb3_hhp.goals.base import SUCCESS_KEY
-from sb3_hhp.goals.minigrid import BOX as _BOX, EMPTY, MiniGridGoalSpace
+from sb3_hhp.goals.minigrid import BOX as _BOX, EMPTY, PICKABLE as _PICKABLE, MiniGridGoalSpace
 from sb3_hhp.oracles.base import Label, Oracle, Query
 
 _WALKABLE = {OBJECT_TO_IDX[name] for name in ("empty", "floor", "goal")}
-_PICKABLE = {OBJECT_TO_IDX[name] for name in ("key", "ball", "box")}
 _DOOR, _KEY, _GOAL = OBJECT_TO_IDX["door"], OBJECT_TO_IDX["key"], OBJECT_TO_IDX["goal"]
 _OPEN, _CLOSED, _LOCKED = STATE_TO_IDX["open"], STATE_TO_IDX["closed"], STATE_TO_IDX["locked"]
 _NO_OBJECT = (EMPTY, 0, 0)
