@@ -12,7 +12,7 @@ from minigrid.core.constants import COLOR_TO_IDX, COLORS, DIR_TO_VEC, OBJECT_TO_
 from minigrid.core.world_object import Ball, Key, Wall
 
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
-from sb3_hhp.goals.minigrid import GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, NO_GOAL_SQUARE, OPEN_DOORS
+from sb3_hhp.goals.minigrid import BLOCKS, GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, NO_GOAL_SQUARE, OPEN_DOORS
 from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query, scripted
 from sb3_hhp.oracles.registry import make_oracle
 from sb3_hhp.oracles.scripted import plan_keys, plan_steps
@@ -848,6 +848,72 @@ def test_count_open_doors_tells_opening_a_door_from_turning_to_an_open_one() -> 
     named = make_goal_space("minigrid_count_doors", named_env)
     assert named.count_open_doors and named.keep_doors_open
     assert make_oracle("scripted", named, named_env.observation_space).goal_space.count_open_doors
+
+
+def _blocking_ball(base) -> tuple[tuple[int, int], int]:
+    """The cell in front of a ball that lies between a door and a free cell (ObstructedMaze's blocking balls), on the
+    side away from the door, and the direction that faces the ball from there."""
+    for x in range(base.width):
+        for y in range(base.height):
+            if not isinstance(base.grid.get(x, y), Ball):
+                continue
+            for direction, (vx, vy) in enumerate(DIR_TO_VEC):
+                door = base.grid.get(x + int(vx), y + int(vy))
+                if door is not None and door.type == "door" and base.grid.get(x - int(vx), y - int(vy)) is None:
+                    return (x - int(vx), y - int(vy)), direction
+    raise AssertionError("no ball blocks a door")
+
+
+def test_mark_blockers_tells_a_ball_in_the_way_from_one_moved_aside() -> None:
+    """With ``mark_blockers``, a key that faces a ball in front of a door gives it the state BLOCKS: put back where it
+    was, the ball still blocks; dropped beside the agent after a turn, it does not. :meth:`present` marks such objects
+    as the keys do, the features and the description tell them apart, and the scripted oracle's plan names the same
+    keys as the goal space reads in the env."""
+    space = make_goal_space("minigrid_open_doors_blockers", wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1")))
+    assert space.mark_blockers and space.keep_doors_open
+    plain = MiniGridGoalSpace(keep_doors_open=True)
+    env = wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1"))
+    env.reset(seed=1)
+    base = env.unwrapped
+    ball = OBJECT_TO_IDX["ball"]
+    cell, direction = _blocking_ball(base)
+    _place(base, cell, direction)
+    obs = env.observation(None)
+    assert space.key(obs) == (EMPTY, ball, BLOCKS) and plain.key(obs) == (EMPTY, ball, 0)
+    assert (ball, BLOCKS) in space.present(obs) and (ball, BLOCKS) not in plain.present(obs)
+    assert "blocks the way" in space.describe(space.key(obs))
+    obs, *_ = env.step(int(Actions.pickup))
+    assert space.key(obs) == (ball, EMPTY, 0)
+    put_back, *_ = env.step(int(Actions.drop))
+    assert space.key(put_back) == (EMPTY, ball, BLOCKS)
+    env.step(int(Actions.pickup))
+    env.step(int(Actions.left))
+    aside, *_ = env.step(int(Actions.drop))
+    assert space.key(aside) == (EMPTY, ball, 0) == plain.key(aside)
+    assert "blocks" not in space.describe(space.key(aside))
+    assert (ball, 0) in space.present(aside)
+    blocked = space.features(np.stack([put_back, aside]))
+    assert blocked.shape[1] == plain.features(aside).shape[1] + 2
+    assert not np.array_equal(blocked[0], blocked[1])
+    # the oracle: with the agent turned away from the ball, the plan to pick it up turns to it first
+    for state, expected in ((put_back, BLOCKS), (aside, 0)):
+        env.reset(seed=1)
+        cell, direction = _blocking_ball(base)
+        target = base.grid.get(cell[0] + int(DIR_TO_VEC[direction][0]), cell[1] + int(DIR_TO_VEC[direction][1]))
+        if expected == 0:  # moved aside as above
+            base.grid.set(*(np.asarray(cell) + DIR_TO_VEC[direction]), None)
+            beside = np.asarray(cell) + DIR_TO_VEC[(direction - 1) % 4]
+            base.grid.set(*beside, target)
+            direction = (direction - 1) % 4
+        base.obj = target
+        _place(base, cell, (direction + 1) % 4)
+        keys = plan_keys(space.privileged(env), space)
+        assert keys == [(EMPTY, ball, expected), SUCCESS_KEY]
+        obs, *_ = env.step(int(Actions.left))
+        assert space.key(obs) == keys[0]
+        assert all(len(key) < 3 or key[2] != BLOCKS for key in plan_keys(plain.privileged(env), plain))
+    assert make_oracle("scripted", space, env.observation_space).goal_space.mark_blockers
+    env.close()
 
 
 # ---------------------------------------------------------------------- steps as they would have gone carrying the key

@@ -50,6 +50,9 @@ GOAL_OUT_OF_REACH = "goal out of reach"
 NO_GOAL_SQUARE = "no goal square"
 #: in :meth:`MiniGridGoalSpace.present` with ``count_open_doors``: ``(OPEN_DOORS, n)``, n doors of the grid are open
 OPEN_DOORS = "open doors"
+#: with ``mark_blockers``, the state a key gives a key, ball or box in front that blocks the way (:func:`blockers`;
+#: MiniGrid's states of doors are 0-2, objects one picks up have none of their own)
+BLOCKS = 3
 #: with ``count_open_doors``, the features tell 0 .. MAX_COUNTED_DOORS - 1 open doors apart (more count as the last)
 MAX_COUNTED_DOORS = 8
 MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
@@ -79,6 +82,30 @@ def find_minigrid(env: gym.Env) -> Optional[MiniGridEnv]:
     return base if isinstance(base, MiniGridEnv) else None
 
 
+def _beside(mask: np.ndarray) -> np.ndarray:
+    """The cells of a batch of grids ``(N, S, S)`` with a True cell among their four neighbours (within each grid)."""
+    near = np.zeros_like(mask)
+    near[:, 1:] |= mask[:, :-1]
+    near[:, :-1] |= mask[:, 1:]
+    near[:, :, 1:] |= mask[:, :, :-1]
+    near[:, :, :-1] |= mask[:, :, 1:]
+    return near
+
+
+def blockers(objects: np.ndarray, agents: np.ndarray) -> np.ndarray:
+    """Which cells of a batch of grids of object codes ``(N, A, B)`` hold an object one picks up that blocks the
+    way: with its cell free, the agent (its cell ``agents[i]`` in grid ``i``) could walk to cells it cannot reach now,
+    doors counted as passable in any state (they can be opened). ``(N, A, B)`` booleans."""
+    objects = np.asarray(objects)
+    rows = np.arange(len(objects))
+    agents = np.asarray(agents, dtype=np.int64).reshape(len(objects), 2)
+    passable = _PASSABLE_TABLE[objects] | (objects == DOOR)
+    passable[rows, agents[:, 0], agents[:, 1]] = True
+    regions, _ = ndimage.label(passable, structure=_GRID_CROSS)
+    beyond = passable & (regions != regions[rows, agents[:, 0], agents[:, 1]][:, None, None])
+    return _PICKABLE_TABLE[objects] & _beside(beyond)
+
+
 def open_doors(obs: np.ndarray) -> Union[int, np.ndarray]:
     """How many doors of the grid an observation (:class:`MiniGridEgocentricObs`) shows open; for a batch of
     observations ``(N, S, S, 3)``, one count each."""
@@ -88,8 +115,9 @@ def open_doors(obs: np.ndarray) -> Union[int, np.ndarray]:
 
 
 _EMPTY_CELL = (EMPTY, 0, 0)
-#: lookups by object id (any byte) of PASSABLE and INTERACTIVE
-_PASSABLE_TABLE, _INTERACTIVE_TABLE = (np.isin(np.arange(256), list(ids)) for ids in (PASSABLE, INTERACTIVE))
+#: lookups by object id (any byte) of PASSABLE, INTERACTIVE and PICKABLE
+_PASSABLE_TABLE, _INTERACTIVE_TABLE, _PICKABLE_TABLE = (np.isin(np.arange(256), list(ids))
+                                                        for ids in (PASSABLE, INTERACTIVE, PICKABLE))
 #: 4-connected neighbours within each grid of a batch (N, S, S), never across grids
 _GRID_CROSS = np.stack([np.zeros((3, 3), dtype=bool), ndimage.generate_binary_structure(2, 1), np.zeros((3, 3), dtype=bool)])
 #: actions whose outcome does not depend on what the agent carries (MiniGridGoalSpace.carried_counterfactual)
@@ -199,20 +227,28 @@ class MiniGridGoalSpace(GoalSpace):
         opened before does not reach (without it, the learner of "facing an open door" asked in front of a closed
         door turns to the open one beside it, and the choice repeats without end; KeyCorridor, README, Design).
         :meth:`present` then also holds ``(OPEN_DOORS, n)``
+    :param mark_blockers: a key that faces a key, a ball or a box that blocks the way (with its cell free the agent
+        could reach cells it cannot reach now, doors counted as open: :func:`blockers`) gives it the state
+        :data:`BLOCKS`, e.g. ``(nothing, ball, BLOCKS)``, as :meth:`present` does such objects within reach: the ball
+        in a doorway is then another sub-goal than the ball moved aside (ObstructedMaze, where the learner of
+        "facing a ball", asked after the blocking ball was picked up, put it back on its cell, its quickest way;
+        benchmarks/README.md)
     """
 
     name = "minigrid"
     keep_doors_open = False  # what a goal space pickled before the options reads
     count_open_doors = False
+    mark_blockers = False
 
     def __init__(self, use_color: bool = False, tile_size: int = 16, keep_doors_open: bool = False,
-                 count_open_doors: bool = False) -> None:
+                 count_open_doors: bool = False, mark_blockers: bool = False) -> None:
         if tile_size < 1:
             raise ValueError(f"tile_size must be >= 1, got {tile_size}")
         self.use_color = use_color
         self.tile_size = tile_size
         self.keep_doors_open = bool(keep_doors_open)
         self.count_open_doors = bool(count_open_doors)
+        self.mark_blockers = bool(mark_blockers)
 
     def action_mask(self, obs: np.ndarray) -> Optional[np.ndarray]:
         """With ``keep_doors_open``: every MiniGrid action but ``toggle`` in front of an open door (which would close it)."""
@@ -240,16 +276,22 @@ class MiniGridGoalSpace(GoalSpace):
     def key(self, obs: np.ndarray) -> Hashable:
         obs = np.asarray(obs)
         center = obs.shape[0] // 2
-        return self.key_of(obs[center, center], obs[center, center - 1], lambda: open_doors(obs))
+        return self.key_of(obs[center, center], obs[center, center - 1], lambda: open_doors(obs),
+                           lambda: bool(blockers(obs[None, ..., 0], [(center, center)])[0, center, center - 1]))
 
-    def key_of(self, carried: Sequence[int], front: Sequence[int], count_open: Callable[[], int]) -> Hashable:
+    def key_of(self, carried: Sequence[int], front: Sequence[int], count_open: Callable[[], int],
+               blocks: Optional[Callable[[], bool]] = None) -> Hashable:
         """The key of a state from the encodings of the carried object and of the one in front; ``count_open()``
-        (how many doors of the grid are open) is called only where ``count_open_doors`` needs it. :meth:`key` reads
-        them from an observation, the scripted oracle from the grid its search changes."""
+        (how many doors of the grid are open) is called only where ``count_open_doors`` needs it, ``blocks()``
+        (whether the object in front blocks the way, :func:`blockers`) where ``mark_blockers`` does. :meth:`key`
+        reads them from an observation, the scripted oracle from the grid its search changes."""
+        state = int(front[2])
+        if self.mark_blockers and front[0] in PICKABLE and blocks is not None and blocks():
+            state = BLOCKS
         if self.use_color:
-            key = (int(carried[0]), int(carried[1]), int(front[0]), int(front[1]), int(front[2]))
+            key = (int(carried[0]), int(carried[1]), int(front[0]), int(front[1]), state)
         else:
-            key = (int(carried[0]), int(front[0]), int(front[2]))
+            key = (int(carried[0]), int(front[0]), state)
         if self.count_open_doors and front[0] == DOOR and front[2] == OPEN:
             key += (int(count_open()),)
         return key
@@ -313,15 +355,13 @@ class MiniGridGoalSpace(GoalSpace):
         passable[:, center, center] = True
         regions, _ = ndimage.label(passable, structure=_GRID_CROSS)
         reached = regions == regions[:, center, center][:, None, None]
-        near = reached.copy()  # and the cells next to a reached one (4-connected), which can be faced
-        near[:, 1:] |= reached[:, :-1]
-        near[:, :-1] |= reached[:, 1:]
-        near[:, :, 1:] |= reached[:, :, :-1]
-        near[:, :, :-1] |= reached[:, :, 1:]
+        near = reached | _beside(reached)  # and the cells next to a reached one (4-connected), which can be faced
         near[:, center, center] = False
         rows, ys, xs = np.nonzero(near & _INTERACTIVE_TABLE[objects])
         columns = [0, 1, 2] if self.use_color else [0, 2]
         cells = obs[rows, ys, xs][:, columns]
+        if self.mark_blockers:  # as the keys name them: objects one picks up that block the way
+            cells[blockers(objects, np.full((n, 2), center))[rows, ys, xs], -1] = BLOCKS
         found: list[list[tuple]] = [[] for _ in range(n)]
         for row, *cell in np.unique(np.column_stack([rows, cells]), axis=0).tolist():  # (row, object[, colour], state)
             found[row].append(tuple(cell))
@@ -397,10 +437,10 @@ class MiniGridGoalSpace(GoalSpace):
     def features(self, obs: np.ndarray) -> np.ndarray:
         """What the preference predictor reads: one-hots of the carried object, the object in front and its
         state (and, with ``use_color``, both colours), then which (object, state) pairs are present anywhere
-        in the grid (a locked door, an open door, a key on the floor, ...); with ``count_open_doors``, a one-hot of
-        how many doors are open comes before those. Positions are left out, so the
-        description recurs across layouts and a hundred labels can teach a ranking of sub-goals that holds
-        in every layout."""
+        in the grid (a locked door, an open door, a key on the floor, ...); before those, with ``count_open_doors``,
+        a one-hot of how many doors are open and, with ``mark_blockers``, one of whether the object in front blocks
+        the way (:func:`blockers`). Positions are left out, so the description recurs across layouts and a hundred
+        labels can teach a ranking of sub-goals that holds in every layout."""
         batch = np.asarray(obs).reshape(-1, *np.shape(obs)[-3:]).astype(np.int64)
         center, rows = batch.shape[1] // 2, np.arange(len(batch))
         objects = np.clip(batch[..., 0], 0, N_OBJECTS - 1)
@@ -415,6 +455,9 @@ class MiniGridGoalSpace(GoalSpace):
             parts += [(colors[:, center, center], N_COLORS), (colors[:, center, center - 1], N_COLORS)]
         if self.count_open_doors:  # how many doors are open, the last value for MAX_COUNTED_DOORS - 1 or more
             parts.append((np.minimum(open_doors(batch), MAX_COUNTED_DOORS - 1), MAX_COUNTED_DOORS))
+        if self.mark_blockers:  # whether the object in front blocks the way
+            blocks = blockers(batch[..., 0], np.full((len(batch), 2), center))[:, center, center - 1]
+            parts.append((blocks.astype(np.int64), 2))
         size = sum(n for _, n in parts) + N_OBJECTS * N_STATES
         out = np.zeros((len(batch), size), dtype=np.float32)
         offset = 0
@@ -540,5 +583,7 @@ class MiniGridGoalSpace(GoalSpace):
             front_name = f"{IDX_TO_STATE.get(state, state)} door"
             if len(key) == (6 if self.use_color else 4):  # with count_open_doors
                 front_name += f" ({key[-1]} open in all)"
+        elif state == BLOCKS:
+            front_name += " that blocks the way"
         carried_name = "nothing" if carried == EMPTY else IDX_TO_OBJECT.get(carried, str(carried))
         return f"carrying {carried_name}, facing {front_name}"

@@ -38,6 +38,7 @@ def make_oracle(
 
             oracle: Oracle = MiniGridScriptedOracle(use_color=getattr(goal_space, "use_color", False),
                                                     count_open_doors=getattr(goal_space, "count_open_doors", False),
+                                                    mark_blockers=getattr(goal_space, "mark_blockers", False),
                                                     **kwargs)
         elif goal_space.name == "fetch":
             from sb3_hhp.oracles.fetch import FetchScriptedOracle

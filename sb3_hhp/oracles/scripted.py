@@ -23,7 +23,7 @@ import numpy as np
 from minigrid.core.constants import DIR_TO_VEC, OBJECT_TO_IDX, STATE_TO_IDX
 
 from sb3_hhp.goals.base import SUCCESS_KEY
-from sb3_hhp.goals.minigrid import BOX as _BOX, EMPTY, PICKABLE as _PICKABLE, MiniGridGoalSpace
+from sb3_hhp.goals.minigrid import BOX as _BOX, EMPTY, PICKABLE as _PICKABLE, MiniGridGoalSpace, blockers
 from sb3_hhp.oracles.base import Label, Oracle, Query
 
 _WALKABLE = {OBJECT_TO_IDX[name] for name in ("empty", "floor", "goal")}
@@ -96,13 +96,24 @@ def plan_steps(
         kept = tuple(change for change in changes if change[0] != x or change[1] != y)
         return tuple(sorted(kept + (((x, y, code),) if code != cells[x][y] else ())))
 
+    objects0 = grid0[..., 0].copy()
     opened0 = sum(code[0] == _DOOR and code[2] == _OPEN for column in cells for code in column)
 
     def key_of(x: int, y: int, d: int, carried: tuple, changes: tuple) -> Hashable:
         dx, dy = DIR_TO_VEC[d]
+        fx, fy = x + dx, y + dy
         # the search opens doors and never closes one: those changed to open are the doors opened since the start
-        return goal_space.key_of(carried, cell(x + dx, y + dy, changes), lambda: opened0 + sum(
-            code[0] == _DOOR and code[2] == _OPEN for _, _, code in changes))
+        return goal_space.key_of(carried, cell(fx, fy, changes), lambda: opened0 + sum(
+            code[0] == _DOOR and code[2] == _OPEN for _, _, code in changes), lambda: blocks(x, y, fx, fy, changes))
+
+    def blocks(x: int, y: int, fx: int, fy: int, changes: tuple) -> bool:
+        """Whether the object on (fx, fy) blocks the way of the agent on (x, y) in the grid as changed."""
+        if not (0 <= fx < width and 0 <= fy < height):
+            return False
+        objects = objects0.copy()
+        for cx, cy, code in changes:
+            objects[cx, cy] = code[0]
+        return bool(blockers(objects[None], [(x, y)])[0, fx, fy])
 
     # A*: the heuristic counts the forward moves from the agent's cell to the nearest cell that ends the task,
     # through every cell the agent could ever stand on (anything but walls and lava: doors may open, objects may be
@@ -222,6 +233,7 @@ class MiniGridScriptedOracle(Oracle):
 
     :param use_color: must match the goal space's ``use_color``
     :param count_open_doors: must match the goal space's ``count_open_doors``
+    :param mark_blockers: must match the goal space's ``mark_blockers``
     :param name: the annotator name recorded with its answers
     :param max_seconds: most seconds the plan of one question may take (answers run on the training thread): the
         first quarter searches a shortest plan; when none is found by then, the rest searches one at most
@@ -231,13 +243,14 @@ class MiniGridScriptedOracle(Oracle):
     """
 
     def __init__(self, use_color: bool = False, name: str = "scripted", max_seconds: float = 2.0,
-                 fallback_weight: float = 3.0, count_open_doors: bool = False) -> None:
+                 fallback_weight: float = 3.0, count_open_doors: bool = False, mark_blockers: bool = False) -> None:
         super().__init__(name)
         if not max_seconds > 0:
             raise ValueError(f"max_seconds must be > 0, got {max_seconds}")
         if not fallback_weight >= 1:
             raise ValueError(f"fallback_weight must be >= 1, got {fallback_weight}")
-        self.goal_space = MiniGridGoalSpace(use_color=use_color, count_open_doors=count_open_doors)
+        self.goal_space = MiniGridGoalSpace(use_color=use_color, count_open_doors=count_open_doors,
+                                            mark_blockers=mark_blockers)
         self.max_seconds = float(max_seconds)
         self.fallback_weight = float(fallback_weight)
         self.last_plan_weight: Optional[float] = None  # which search found the last plan (1: a shortest one)
