@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from stable_baselines3.common.utils import get_device
 
 from sb3_hhp.oracles.base import Answer, Label, Oracle, Query
-from sb3_hhp.preferences.predictor import PreferenceNetwork
+from sb3_hhp.preferences.predictor import PreferenceNetwork, check_int
 from sb3_hhp.preferences.seeding import OwnRandomState
 
 
@@ -71,13 +71,13 @@ class SyntheticOracle(OwnRandomState, Oracle):
     ) -> None:
         super().__init__(name)
         for arg, value in (("batch_size", batch_size), ("n_epochs", n_epochs), ("buffer_size", buffer_size)):
-            _check_int(arg, value, 1)
+            check_int(arg, value, 1)
         if not float(learning_rate) > 0:
             raise ValueError(f"learning_rate must be > 0, got {learning_rate!r}")
         if not float(equal_tolerance) >= 0:
             raise ValueError(f"equal_tolerance must be >= 0 (return units), got {equal_tolerance!r}")
         if seed is not None:
-            _check_int("seed", seed, 0)
+            check_int("seed", seed, 0)
         self.observation_space = observation_space
         self.learning_rate = float(learning_rate)
         self.batch_size = int(batch_size)
@@ -167,7 +167,7 @@ class SyntheticOracle(OwnRandomState, Oracle):
         """
         if n_epochs is None:
             n_epochs = self.n_epochs
-        _check_int("n_epochs", n_epochs, 1)
+        check_int("n_epochs", n_epochs, 1)
         if self._size == 0:
             return math.nan
         total_loss, total_count = 0.0, 0
@@ -269,8 +269,3 @@ class SyntheticOracle(OwnRandomState, Oracle):
                 setattr(self, attr, new)
             self._size, self._pos = size, int(buffer["pos"])
         self.network.eval()
-
-
-def _check_int(name: str, value: Any, minimum: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")

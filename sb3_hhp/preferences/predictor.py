@@ -34,7 +34,8 @@ SPREADS = ("std", "var")
 MIN_CNN_SIDE = 36
 
 
-def _check_int(name: str, value: Any, minimum: int) -> None:
+def check_int(name: str, value: Any, minimum: int) -> None:
+    """A clear error unless ``value`` is a whole number (not a bool) >= ``minimum``."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
 
@@ -82,7 +83,7 @@ class PreferenceNetwork(nn.Module):
     ) -> None:
         super().__init__()
         _check_box(observation_space)
-        _check_int("hidden_dim", hidden_dim, 1)
+        check_int("hidden_dim", hidden_dim, 1)
         if not 0.0 <= float(dropout) < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {dropout!r}")
         if head not in HEADS:
@@ -269,18 +270,18 @@ class PreferencePredictor(OwnRandomState):
         seed: Optional[int] = None,
     ) -> None:
         _check_box(observation_space)
-        _check_int("n_masks", n_masks, 1)
-        _check_int("batch_size", batch_size, 1)
-        _check_int("n_epochs", n_epochs, 1)
-        _check_int("min_updates", min_updates, 0)
-        _check_int("buffer_size", buffer_size, 1)
-        _check_int("mask_batch_size", mask_batch_size, 1)
+        check_int("n_masks", n_masks, 1)
+        check_int("batch_size", batch_size, 1)
+        check_int("n_epochs", n_epochs, 1)
+        check_int("min_updates", min_updates, 0)
+        check_int("buffer_size", buffer_size, 1)
+        check_int("mask_batch_size", mask_batch_size, 1)
         if not float(learning_rate) > 0:
             raise ValueError(f"learning_rate must be > 0, got {learning_rate!r}")
         if spread not in SPREADS:
             raise ValueError(f"spread must be one of {SPREADS}, got {spread!r}")
         if seed is not None:
-            _check_int("seed", seed, 0)
+            check_int("seed", seed, 0)
 
         self.observation_space = observation_space
         #: changes whenever the network's weights do (train, load): scores cached under another version are stale
@@ -505,7 +506,7 @@ class PreferencePredictor(OwnRandomState):
         """
         if n_epochs is None:
             n_epochs = self.n_epochs
-        _check_int("n_epochs", n_epochs, 1)
+        check_int("n_epochs", n_epochs, 1)
         if self._size == 0:
             return {"loss": math.nan, "accuracy": math.nan}
         per_epoch = math.ceil(self._size / self.batch_size)
