@@ -390,6 +390,21 @@ def read_checkpoint(run_folder: str) -> dict[str, Any]:
     return checkpoint
 
 
+def answers_database(run_folder: str) -> str:
+    """The preference database a run folder's answers went to: its own, or, for a resumed part (``resumed.json``),
+    which goes on with the answers of the part it resumed, that part's, back to the run's first part; a run resumed
+    twice then keeps every answer in one file and asks no question twice."""
+    folder, seen = Path(run_folder), set()
+    while not (folder / PREFERENCE_DB_NAME).is_file() and (folder / "resumed.json").is_file() and folder not in seen:
+        seen.add(folder)
+        try:
+            folder = Path(json.loads((folder / "resumed.json").read_text())["run_folder"])
+        except (ValueError, KeyError, TypeError):
+            break
+    found = folder / PREFERENCE_DB_NAME
+    return str(found if found.is_file() else Path(run_folder) / PREFERENCE_DB_NAME)
+
+
 def _experiment_manager_class() -> type:
     from rl_zoo3.exp_manager import ExperimentManager
 
@@ -441,8 +456,8 @@ def _experiment_manager_class() -> type:
             # every run keeps its answers in a durable store; optuna trials would share one, so they get none
             if "preference_db" not in hyperparams and not (self.optimize_hyperparameters and not options.label_server):
                 # a resumed run goes on with the answers of the run it resumes
-                run_folder = self.checkpoint["run_folder"] if self.checkpoint is not None else self.save_path
-                hyperparams["preference_db"] = os.path.join(run_folder, PREFERENCE_DB_NAME)
+                hyperparams["preference_db"] = (answers_database(self.checkpoint["run_folder"]) if self.checkpoint
+                                                is not None else os.path.join(self.save_path, PREFERENCE_DB_NAME))
             validate_hyperparams(hyperparams, f"{self.config} [{self.config_entry}]")
             self._check_values(hyperparams)
             if self.n_timesteps > 0:  # -n overrides the file: the dump (config.yml) says what was trained

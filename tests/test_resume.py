@@ -117,7 +117,8 @@ def test_a_resumed_part_is_seeded_apart_from_the_run_and_its_evaluations():
 @pytest.mark.slow
 def test_a_run_goes_on_from_its_checkpoint(tmp_path):
     """A run stopped at its checkpoint goes on with --resume: the step count goes on to -n, answers go to the same
-    preference database and no question is asked twice, the evaluations go on from the checkpoint's steps."""
+    preference database and no question is asked twice, the evaluations go on from the checkpoint's steps; resumed
+    once more, from the second part, the same again."""
     common = ["--env", ENV, "--oracle", "scripted", "--seed", "3", "--eval-episodes", "2", "--num-threads", "1",
               "--verbose", "0", "-f", str(tmp_path / "logs"), "--eval-freq", "1000", "--periodic-eval-episodes", "1",
               "--checkpoint-freq", "1000", "--hyperparams", "n_envs:2"]
@@ -151,6 +152,17 @@ def test_a_run_goes_on_from_its_checkpoint(tmp_path):
                                                                "seed": part_seed}
     timesteps = np.load(run2 / "evaluations.npz")["timesteps"]
     assert timesteps[0] > checkpoint["timesteps"]
+    # resumed again, from the second part's folder (which holds no database of its own): the answers still go to the
+    # first part's database, and still no question is asked twice
+    assert not (run2 / "preferences.sqlite").exists()
+    third = _cli(*common, "-n", "6000", "--resume", str(run2), "--summary-json", str(tmp_path / "third.json"),
+                 cwd=tmp_path)
+    assert third.returncode == 0, third.stderr[-3000:]
+    summary3 = json.loads((tmp_path / "third.json").read_text())
+    assert summary3["resumed_from"]["run_folder"] == str(run2)
+    assert summary3["preference_db"] == summary1["preference_db"] and not (run2 / "preferences.sqlite").exists()
+    assert summary3["queries_used"] >= summary2["queries_used"]
+    assert summary3["queries_asked"] == summary3["queries_distinct"] == summary3["queries_used"]
 
     missing = _cli(*common, "-n", "4000", "--resume", str(tmp_path), cwd=tmp_path)
     assert missing.returncode == 2 and "has no checkpoint.json" in missing.stderr and "--checkpoint-freq" in missing.stderr
