@@ -229,8 +229,8 @@ class MiniGridGoalSpace(GoalSpace):
         :meth:`present` then also holds ``(OPEN_DOORS, n)``
     :param mark_blockers: a key that faces a key, a ball or a box that blocks the way (with its cell free the agent
         could reach cells it cannot reach now, doors counted as open: :func:`blockers`) gives it the state
-        :data:`BLOCKS`, e.g. ``(nothing, ball, BLOCKS)``, as :meth:`present` does such objects within reach: the ball
-        in a doorway is then another sub-goal than the ball moved aside (ObstructedMaze, where the learner of
+        :data:`BLOCKS`, e.g. ``(nothing, ball, BLOCKS)``, as :meth:`present` does such objects within reach: a ball
+        in front of a door is then another sub-goal than the ball moved aside (ObstructedMaze, where the learner of
         "facing a ball", asked after the blocking ball was picked up, put it back on its cell, its quickest way;
         benchmarks/README.md)
     """
