@@ -64,6 +64,7 @@ EVAL_SEED_OFFSET = 10_000
 #: the file name of the preference database inside the run folder
 PREFERENCE_DB_NAME = "preferences.sqlite"
 CHECKPOINT_FILE = "checkpoint.json"  # the run folder's latest checkpoint (--checkpoint-freq, --resume)
+RESUMED_FILE = "resumed.json"  # a resumed part's folder: the run folder and checkpoint it went on from
 #: keys RL Zoo reads itself (they never reach HhP's constructor)
 ZOO_KEYS = frozenset(
     {"n_timesteps", "policy", "env_wrapper", "n_envs", "normalize", "frame_stack", "callback", "vec_env_wrapper",
@@ -395,10 +396,10 @@ def answers_database(run_folder: str) -> str:
     which goes on with the answers of the part it resumed, that part's, back to the run's first part; a run resumed
     twice then keeps every answer in one file and asks no question twice."""
     folder, seen = Path(run_folder), set()
-    while not (folder / PREFERENCE_DB_NAME).is_file() and (folder / "resumed.json").is_file() and folder not in seen:
+    while not (folder / PREFERENCE_DB_NAME).is_file() and (folder / RESUMED_FILE).is_file() and folder not in seen:
         seen.add(folder)
         try:
-            folder = Path(json.loads((folder / "resumed.json").read_text())["run_folder"])
+            folder = Path(json.loads((folder / RESUMED_FILE).read_text())["run_folder"])
         except (ValueError, KeyError, TypeError):
             break
     found = folder / PREFERENCE_DB_NAME
@@ -516,7 +517,7 @@ def _experiment_manager_class() -> type:
             print(f"Resuming {checkpoint['run_folder']} at {checkpoint['timesteps']} steps")
             os.makedirs(self.save_path, exist_ok=True)  # where this part's evaluations begin (benchmarks join the parts)
             part_seed = resume_seed(self.seed, int(checkpoint["timesteps"]))
-            with open(os.path.join(self.save_path, "resumed.json"), "w") as file:
+            with open(os.path.join(self.save_path, RESUMED_FILE), "w") as file:
                 json.dump({"run_folder": checkpoint["run_folder"], "timesteps": checkpoint["timesteps"],
                            "seed": part_seed}, file)
             chosen = {key: hyperparams[key] for key in ("oracle", "preference_db") if hyperparams.get(key) is not None}
