@@ -9,7 +9,8 @@ run at a time: ``--envs MiniGrid-DoorKey-16x16-v0 --variants hhp --seeds 0``.
 Variants:
 
 - ``hhp``: ``python -m sb3_hhp.train --env ENV --oracle scripted -n STEPS --seed S --eval-both ...``, the
-  command users train with (hyperparameters from ``hhp_conf``, default ``hyperparams/hhp.yml``);
+  command users train with (hyperparameters from ``hhp_conf``, default ``hyperparams/hhp.yml``; a variant that
+  names its own ``--oracle`` has that one instead of ``scripted``);
 - ``dqn``, ``ppo``: SB3's DQN and PPO, flat, on the observation HhP sees (:func:`sb3_hhp.goals.wrap_env`);
 - ``ppo_rnd``: PPO with RND's intrinsic reward added to the env's (:class:`sb3_hhp.curiosity.VecRNDReward`),
   the paper's baseline.
@@ -403,8 +404,10 @@ def run_training(command: list[str], log_file: Any) -> int:
 def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> dict[str, Any]:
     summary_path = out / "runs" / f"{experiment.name}.json"
     log_folder = out / "logs" / experiment.name
+    options = list(sweep.hhp_options(experiment.variant))
+    oracle = [] if "--oracle" in options else ["--oracle", "scripted"]  # a variant's own oracle replaces it
     command = [
-        sys.executable, "-m", "sb3_hhp.train", "--env", experiment.env, "--oracle", "scripted",
+        sys.executable, "-m", "sb3_hhp.train", "--env", experiment.env, *oracle,
         "-n", str(experiment.steps), "--seed", str(experiment.seed), "--eval-both",
         "--eval-episodes", str(sweep.eval_episodes), "--summary-json", str(summary_path),
         "-f", str(log_folder), "--num-threads", "1",
@@ -418,7 +421,7 @@ def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> 
         command += ["--resume", str(resume)]
     if sweep.hhp_conf:
         command += ["--conf-file", sweep.hhp_conf]
-    command += list(sweep.hhp_options(experiment.variant))
+    command += options
     log_file.write("$ " + " ".join(command) + "\n")
     log_file.flush()
     returncode = run_training(command, log_file)

@@ -181,7 +181,9 @@ def test_hhp_variants_train_hhp_with_their_own_options(tmp_path, monkeypatch):
             _run_hhp(Experiment("MiniGrid-Empty-5x5-v0", variant, 0, 100), sweep, tmp_path, log_file)
     plain, noisy = commands
     assert plain[-2:] == ["--hyperparams", "n_envs:2"] and "noisy-scripted" not in plain
-    # the variant's options come last: its --oracle is the one sb3_hhp.train keeps
+    assert plain[plain.index("--oracle") + 1] == "scripted" and plain.count("--oracle") == 1
+    # the variant's own oracle is the only one the command names, and its options come last
+    assert noisy.count("--oracle") == 1 and "scripted" not in noisy
     assert noisy[-6:] == ["--hyperparams", "n_envs:2", "--oracle", "noisy-scripted", "--hyperparams",
                           "oracle_kwargs:dict(rho=0.2)"]
     # rows: HhP, then the baselines, then the sweep's HhP variants; named "HhP, <rest>" in tables
