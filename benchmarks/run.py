@@ -75,6 +75,8 @@ from typing import Any, Optional, Union
 
 import yaml
 
+from sb3_hhp.train import CHECKPOINT_FILE, RESUMED_FILE  # the run folders' files the training command writes
+
 #: the variants a sweep may name, in the order of tables and plots
 VARIANTS = ("hhp", "dqn", "ppo", "ppo_rnd")
 #: the keys of a sweep file, with their defaults (None: required or computed)
@@ -363,7 +365,7 @@ def _curve_from_evaluations(npz_paths: Union[Path, Sequence[Path]], csv_path: Pa
             "success": np.asarray(successes, dtype=float).mean(axis=1),
             "mean_return": returns.mean(axis=1),
         })
-        resumed = npz_path.parent / "resumed.json"
+        resumed = npz_path.parent / RESUMED_FILE
         if resumed.is_file() and parts:
             start = int(json.loads(resumed.read_text())["timesteps"])
             parts = [earlier[earlier["steps"] <= start] for earlier in parts]
@@ -380,8 +382,8 @@ def latest_checkpoint(log_folder: Path) -> Optional[Path]:
     """The run folder holding the latest checkpoint an unfinished HhP run left (``sb3_hhp.train --checkpoint-freq``),
     None when there is none."""
     best: Optional[tuple[int, Path]] = None
-    own = Path(log_folder) / "checkpoint.json"  # one run folder, or a training command's -f folder (runs in hhp/*)
-    for pointer in [own] if own.is_file() else Path(log_folder).glob("hhp/*/checkpoint.json"):
+    own = Path(log_folder) / CHECKPOINT_FILE  # one run folder, or a training command's -f folder (runs in hhp/*)
+    for pointer in [own] if own.is_file() else Path(log_folder).glob(f"hhp/*/{CHECKPOINT_FILE}"):
         try:
             steps = int(json.loads(pointer.read_text())["timesteps"])
         except (ValueError, KeyError, TypeError):
@@ -474,7 +476,7 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
         model.set_random_seed(seed)
         part_folder = log_folder / f"part_{checkpoint['timesteps']}"
         part_folder.mkdir(parents=True, exist_ok=True)
-        (part_folder / "resumed.json").write_text(json.dumps({"timesteps": checkpoint["timesteps"], "seed": seed}) + "\n")
+        (part_folder / RESUMED_FILE).write_text(json.dumps({"timesteps": checkpoint["timesteps"], "seed": seed}) + "\n")
     earlier_seconds = checkpoint["train_seconds"] if checkpoint is not None else 0.0
     callbacks = []
     eval_freq = sweep.eval_freq[experiment.env]
