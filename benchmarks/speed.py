@@ -18,7 +18,7 @@ number of steps: the speed late in a run, when sub-goals have accumulated and ep
     python benchmarks/speed.py late --model RUN/MiniGrid-DoorKey-8x8-v0.zip --n-envs 8
 
 ``ab``: two settings of the sub-goal learners (``--learners-a``, ``--learners-b``, JSON attributes, e.g.
-``{"grouped_rounds": true}``) trained on, alternately, from one saved state of a run (HhP.save and save_replay_buffer
+``{"grouped_rounds": true}``; ``{"keep_encoded": false}``: the replay keeps no places of one-hot indicators) trained on, alternately, from one saved state of a run (HhP.save and save_replay_buffer
 at ``--start`` steps), ``--repeats`` pairs of ``--profile-steps`` steps each::
 
     python benchmarks/speed.py ab --env MiniGrid-DoorKey-8x8-v0 --n-envs 8 --start 20000 --profile-steps 6000
@@ -55,6 +55,11 @@ relabelling the batches, the priority update, Python; the profiled calls' wall t
 time unprofiled beside it::
 
     python benchmarks/speed.py call --env MiniGrid-DoorKey-8x8-v0 --n-envs 8 --seed 1 --start 25000
+
+With ``--call-ab``, ``--learners-a`` and ``--learners-b`` (as ``ab``) timed too, in alternating blocks of 25 calls::
+
+    python benchmarks/speed.py call --env MiniGrid-KeyCorridorS4R3-v0 --n-envs 8 --seed 100 --start 60000 --repeats 6 \
+        --call-ab --learners-a '{"keep_encoded": true}' --learners-b '{"keep_encoded": false}'
 
 Results are JSON files under ``--out``; say the machine's load next to the figures (the script records the load
 average at its start and end).
@@ -239,6 +244,16 @@ def from_snapshot(args: argparse.Namespace, folder: pathlib.Path, repeat: int) -
     return model
 
 
+def set_learners(learners: Any, values: dict[str, Any]) -> None:
+    """The sub-goal learners' attributes ``values`` (e.g. grouped_rounds, max_updates); ``keep_encoded``: whether their
+    replay keeps what the networks read of its states (with one_hot, the places of the set indicators)."""
+    for key, value in values.items():
+        if key == "keep_encoded":
+            learners.replay.keep_encoded(learners._encoded if value else None)
+        else:
+            setattr(learners, key, value)
+
+
 def learners_ab(args: argparse.Namespace) -> dict[str, Any]:
     """HhP trained to ``--start`` steps and saved with its replays; then ``--repeats`` times, alternately, loaded and
     trained ``--profile-steps`` more with the learner settings of ``--learners-a`` and of ``--learners-b``: two
@@ -251,8 +266,7 @@ def learners_ab(args: argparse.Namespace) -> dict[str, Any]:
     for repeat in range(args.repeats):
         for name, values in settings.items():
             model = from_snapshot(args, folder, repeat)
-            for key, value in values.items():  # the learners' attributes (e.g. grouped_rounds, max_updates)
-                setattr(model.subpolicies, key, value)
+            set_learners(model.subpolicies, values)
             fps[name].append(round(timed_steps(model, args.profile_steps), 1))
             subgoals[name].append(len(model.subgoals))
     ratios = np.array(fps["b"]) / np.array(fps["a"])
@@ -320,6 +334,17 @@ def learner_call(args: argparse.Namespace) -> dict[str, Any]:
         learners.train_rounds(plan, first_round=learners.rounds + 1)
 
     calls = args.repeats * 25
+    compared = {}
+    if args.call_ab:  # --learners-b against --learners-a, blocks of calls alternately from this state (the machine drifts)
+        settings = {"a": json.loads(args.learners_a), "b": json.loads(args.learners_b)}
+        blocks: dict[str, list[float]] = {"a": [], "b": []}
+        for _ in range(args.repeats):
+            for name, values in settings.items():
+                set_learners(learners, values)
+                blocks[name].append(round(1000 * median_seconds(call, 25, blocks=1), 3))
+        compared = dict(learners_a=settings["a"], learners_b=settings["b"], call_ms_a=blocks["a"], call_ms_b=blocks["b"],
+                        median_ratio_b_to_a=round(float(np.median(np.array(blocks["b"]) / np.array(blocks["a"]))), 3))
+        set_learners(learners, settings["a"])  # the split below: A's
     seconds = median_seconds(call, calls)  # as a run pays it
     with profile(activities=[ProfilerActivity.CPU]) as prof:  # the split, from a profiled run of as many calls
         begin = time.perf_counter()
@@ -334,7 +359,7 @@ def learner_call(args: argparse.Namespace) -> dict[str, Any]:
                 snapshot_subgoals=len(hhp.subgoals), learners_per_round=len(goals), rounds=len(plan),
                 call_ms=round(1000 * seconds, 3), profiled_call_ms=round(profiled_ms, 3), products_ms=round(products_ms, 3),
                 other_torch_ms=round(torch_ms - products_ms, 3), outside_torch_ms=round(profiled_ms - torch_ms, 3),
-                top_torch_ops_ms={event.key: round(event.self_cpu_time_total / 1000 / calls, 3) for event in top})
+                top_torch_ops_ms={event.key: round(event.self_cpu_time_total / 1000 / calls, 3) for event in top}, **compared)
 
 
 def distinct_states(env_id: str, n: int, seed: int) -> list[np.ndarray]:
@@ -453,6 +478,8 @@ def main() -> None:
     parser.add_argument("--learners-a", default="{}", help="ab: JSON, sub-goal learner attributes of A")
     parser.add_argument("--learners-b", default='{"grouped_rounds": true}', help="ab: JSON, the same for B")
     parser.add_argument("--repeats", type=int, default=4, help="ab, parts: pairs; call: 25 calls a repeat")
+    parser.add_argument("--call-ab", action="store_true",
+                        help="call: also time --learners-a against --learners-b, --repeats alternating blocks of 25 calls")
     parser.add_argument("--out", default="benchmarks/results/speed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (HhP and the flat DQN alike)")
     args = parser.parse_args()

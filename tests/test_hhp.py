@@ -22,7 +22,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecFrameStack, VecNorm
 from sb3_hhp import HhP
 from sb3_hhp.goals import MiniGridGoalSpace, wrap_env
 from sb3_hhp.hhp.hhp import COMPONENTS_FILE, MOVED_ARGUMENTS
-from sb3_hhp.hierarchy.learners import OneHotCodes
+from sb3_hhp.hierarchy.learners import OneHotCodes, StackedDQN
 from sb3_hhp.hierarchy.options import EpisodeTrace
 from sb3_hhp.oracles import Label
 from sb3_hhp.preferences.store import PreferenceStore
@@ -620,6 +620,41 @@ def test_one_hot_learners_read_each_code_as_indicators_and_save_and_load(tmp_pat
     assert loaded.subgoal_learner_kwargs["one_hot"] == [11, 0, 3]
     sequence = _rollout_observations(model, seed=3)
     assert _predictions(loaded, sequence) == _predictions(model, sequence)
+
+
+def test_one_hot_places_kept_by_the_replay_train_as_the_dense_indicators_encoded_at_each_draw(tmp_path, monkeypatch) -> None:
+    """With one_hot the shared replay keeps the places of each stored state's set indicators, written when the step is
+    stored, and the learners' update reads them as sums of the first layer's columns instead of encoding every drawn
+    state densely: the same parameters, to float rounding, as the dense update; not written into the replay's file,
+    found again when it is loaded (rows a carried counterfactual changes: ``test_learners.py``)."""
+    kwargs = dict(subgoal_learner_kwargs=dict(view=3, one_hot=[11, 0, 3], carry_relabel=0.5, train_shared=True))
+    kept = make_model(**kwargs)
+    replay = kept.subpolicies.replay
+    assert replay.encoded_observations is not None and replay.encoded_observations.shape[-1] == 3 * 3 * 2
+    kept.learn(600)
+    with monkeypatch.context() as patch:
+        patch.setattr(StackedDQN, "_encoded_replay", False)
+        encoded_each_draw = make_model(**kwargs)
+    assert encoded_each_draw.subpolicies.replay.encoded_observations is None
+    encoded_each_draw.learn(600)
+    assert kept.subpolicies.n_updates.sum() > 0
+    assert kept.subpolicies.n_updates.tolist() == encoded_each_draw.subpolicies.n_updates.tolist()
+    th.testing.assert_close(kept.subpolicies.params, encoded_each_draw.subpolicies.params, rtol=1e-4, atol=1e-6)
+    assert not th.equal(kept.subpolicies.params, kept.subpolicies.target)  # the updates moved the networks
+    size, one_hot = replay.size(), kept.subpolicies._one_hot
+    for stored, encoded in ((replay.observations, replay.encoded_observations),
+                            (replay.next_observations, replay.encoded_next_observations)):
+        dense = one_hot.encode(stored[:size, :, 2:5, 2:5]).reshape(size, replay.n_envs, -1)  # the 3 x 3 view
+        for row, places in zip(dense.reshape(-1, dense.shape[-1]), encoded[:size].reshape(-1, encoded.shape[-1])):
+            set_ = np.flatnonzero(row).tolist()
+            assert places.tolist() == set_ + [dense.shape[-1]] * (len(places) - len(set_))
+    assert "encoded_observations" not in kept.subpolicies.replay_state()["replay"]["attributes"]
+    kept.save(tmp_path / "model")
+    kept.save_replay_buffer(tmp_path / "replay")
+    loaded = HhP.load(tmp_path / "model")
+    loaded.load_replay_buffer(tmp_path / "replay")
+    np.testing.assert_array_equal(loaded.subpolicies.replay.encoded_next_observations[:size],
+                                  replay.encoded_next_observations[:size])
 
 
 def test_exploration_run_steps_reaches_the_learners_and_saves(tmp_path) -> None:

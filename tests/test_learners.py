@@ -7,7 +7,7 @@ import torch as th
 from gymnasium import spaces
 from torch.nn import functional as F
 
-from sb3_hhp.hierarchy.learners import StackedDQN
+from sb3_hhp.hierarchy.learners import Indicators, OneHotCodes, StackedDQN
 from sb3_hhp.hierarchy.replay import GoalBatch, GoalTrees, SharedReplay
 
 OBS = spaces.Box(0, 255, (3,), np.uint8)
@@ -598,3 +598,87 @@ def test_a_carrying_subgoal_learns_from_empty_handed_steps_as_they_would_have_go
     assert unchanged.any() and not batch.dones[0, unchanged].any()
     with pytest.raises(ValueError, match="carry_relabel"):
         SharedReplay(16, OBS, ACTIONS, equal_keys, carry_relabel=1.5)
+
+
+def test_the_places_of_set_indicators_are_the_one_hot_inputs_and_a_first_layer_reads_them_as_the_dense_product() -> None:
+    """OneHotCodes.places gives, per observation, the places of the indicators encode sets in its flattened output,
+    increasing, then the input size as padding up to one place per used channel of every cell; Indicators.linear is
+    each learner's x @ W.T + b at those inputs (the padding cut or not), and Indicators.dense the inputs themselves."""
+    space = spaces.Box(0, 10, (5, 4, 3), np.uint8)
+    cells = np.random.default_rng(1).integers(0, 11, (2, 6, 5, 4, 3)).astype(np.uint8)
+    cells[0, 0] = 0  # an observation with no listed code: no indicator set
+    for listed in ([[2, 4, 5, 6], [], [1, 2]], [11, 6, 3], [[7, 3], 2, 0]):
+        codes = OneHotCodes(space, listed)
+        dense = codes.encode(cells).reshape(2, 6, -1)
+        size = dense.shape[-1]
+        places = codes.places(cells)
+        assert places.shape == (2, 6, 5 * 4 * len(codes.channels)) and places.dtype == np.int16
+        for row, row_places in zip(dense.reshape(12, -1), places.reshape(12, -1)):
+            assert row_places.tolist() == np.flatnonzero(row).tolist() + [size] * (len(row_places) - int(row.sum()))
+        weight, bias = th.randn(2, 5, size, generator=th.Generator().manual_seed(0)), th.randn(2, 5)
+        expected = th.baddbmm(bias.unsqueeze(1), th.as_tensor(dense), weight.transpose(1, 2))
+        most = int((dense > 0).sum(-1).max())
+        for kept in (places, places[..., :most]):
+            inputs = Indicators(th.as_tensor(kept.astype(np.int64)), size)
+            th.testing.assert_close(inputs.dense(), th.as_tensor(dense))
+            th.testing.assert_close(inputs[:, 2:].dense(), th.as_tensor(dense[:, 2:]))
+            th.testing.assert_close(inputs.linear(weight, bias), expected, rtol=1e-5, atol=1e-5)
+
+
+def test_one_hot_updates_read_the_kept_places_and_learn_as_the_dense_input_does(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With one_hot, an update's first layer reads the places of the set indicators the replay kept: the same
+    parameters, Adam moments and losses, to float rounding, as the dense one-hot input, over grouped rounds, the
+    lower bound's closing states, give-ups, target networks renewed (their first layer's rows made again) and
+    learners updated in turn."""
+    grids = np.random.default_rng(0).integers(0, 11, (60, 7, 7, 3)).astype(np.uint8)
+    runs = []
+    for keep in (True, False):
+        monkeypatch.setattr(StackedDQN, "_encoded_replay", keep)
+        learners = StackedDQN(GRID, ACTIONS, equal_keys, n_envs=1, seed=0, view=5, train_shared=True,
+                              one_hot=[[2, 4, 5, 6], [], [1, 2]], grouped_rounds=True,
+                              subpolicy_kwargs=dict(learning_starts=4, batch_size=4, train_freq=1, gradient_steps=2,
+                                                    n_steps=3, learning_rate=0.01, target_update_interval=7,
+                                                    policy_kwargs=dict(net_arch=[8, 8])))
+        assert (learners.replay.encoded_observations is not None) == keep
+        for goal in ("A", "B", "C"):
+            learners.add(goal)
+        losses = []
+        for t in range(len(grids) - 1):
+            learners.observe(grids[t : t + 1], np.array([t % 3]), grids[t + 1 : t + 2], ["ABCx"[t % 7 % 4]],
+                             np.array([False]), np.array([False]), np.array([t % 9 == 8]), np.array([t % 3]),
+                             np.array([0.1], np.float32))
+            losses.append(learners.last_loss)
+        runs.append((learners, losses))
+    (kept, kept_losses), (dense, dense_losses) = runs
+    assert kept.n_updates.min() > 20 and kept.n_updates.tolist() == dense.n_updates.tolist()
+    th.testing.assert_close(kept.params, dense.params, rtol=1e-4, atol=1e-6)
+    th.testing.assert_close(kept.exp_avg_sq, dense.exp_avg_sq, rtol=1e-3, atol=1e-10)
+    np.testing.assert_allclose(kept_losses, dense_losses, rtol=1e-4)
+    assert not th.equal(kept.params[0], kept.target[0])
+
+
+def test_encoded_copies_kept_by_the_replay_match_every_drawn_state_counterfactuals_included() -> None:
+    """``keep_encoded``: the replay keeps ``encode`` of every stored state beside it (those stored before it are
+    encoded at once), and a drawn batch's encoded rows are the encoding of its states, closing states and the
+    behaviour's closing states, rows changed by the carried counterfactual included; None keeps nothing."""
+    def counterfactual(goal_key, obs, actions, next_obs):
+        usable = actions.reshape(-1) != 2
+        return usable, obs + 100, next_obs + 100, [("carrying", int(o[0]) - 100) for o in next_obs[usable] + 100]
+
+    def encode(obs):  # (..., 3) -> (..., 2): a distinct image of each state
+        return np.stack([obs[..., 0] // 2, obs[..., 0] % 7], axis=-1).astype(np.uint8)
+
+    replay = SharedReplay(16, OBS, ACTIONS, equal_keys, n_steps=3, lower_bound=True, carry_relabel=0.5,
+                          counterfactual=counterfactual, seed=0)
+    replay.add_goal(("carrying", 3))
+    fill(replay, [("empty", t + 1) for t in range(3)], acting=[0] * 3)
+    replay.keep_encoded(encode)  # the three stored steps encoded now, the rest as they are stored
+    fill(replay, [("empty", t + 1) for t in range(3, 9)], acting=[0] * 6)
+    batch = replay.sample(np.array([0]), 64)
+    assert (batch.observations >= 100).any() and (batch.observations < 100).any()  # changed rows and stored ones
+    for states, encoded in ((batch.observations, batch.encoded_observations),
+                            (batch.next_observations, batch.encoded_next_observations),
+                            (batch.behaviour_next_observations, batch.encoded_behaviour_next_observations)):
+        np.testing.assert_array_equal(encoded, encode(states))
+    replay.keep_encoded(None)
+    assert replay.sample(np.array([0]), 8).encoded_observations is None and replay.encoded_observations is None

@@ -183,6 +183,63 @@ class OneHotCodes:
             index = part if index is None else index + part
         return np.take(self.table, index, axis=0)
 
+    def places(self, cells: np.ndarray) -> np.ndarray:
+        """Where the indicators that :meth:`encode` sets lie in its output flattened per observation (``H * W *
+        n_indicators`` places): ``(..., H * W * channels used)``, the most a cell's codes can set, each observation's
+        places first in increasing order, then ``H * W * n_indicators`` (padding); int16 where that fits, else int32.
+        A first layer reads them as a sum of its weights' columns (:class:`Indicators`): a MiniGrid observation has a
+        few dozen indicators set among ~1,000."""
+        lead, (h, w) = cells.shape[:-3], cells.shape[-3:-1]
+        size = h * w * self.n_indicators
+        indicators = self.encode(cells).reshape(-1, size)
+        rows, columns = np.nonzero(indicators)  # row by row, each row's in increasing order
+        counts = np.bincount(rows, minlength=len(indicators))
+        out = np.full((len(indicators), h * w * len(self.channels)), size,
+                      dtype=np.int16 if size <= np.iinfo(np.int16).max else np.int32)
+        out[rows, np.arange(len(rows)) - (np.cumsum(counts) - counts)[rows]] = columns
+        return out.reshape(*lead, out.shape[-1])
+
+
+class Indicators:
+    """One-hot inputs ``(T, N, size)`` held as the places of their set indicators (``(T, N, P)``, padded with
+    ``size``: :meth:`OneHotCodes.places`): what a first layer reads as sums of its weights' columns."""
+
+    def __init__(self, places: th.Tensor, size: int) -> None:
+        self.places, self.size = places, size
+
+    def __getitem__(self, index: Any) -> "Indicators":
+        """The inputs ``index`` of the leading ``(T, N)`` axes."""
+        return Indicators(self.places[index], self.size)
+
+    def dense(self) -> th.Tensor:
+        """The inputs as a float tensor ``(..., size)`` of zeros and ones."""
+        out = th.zeros((*self.places.shape[:-1], self.size + 1), device=self.places.device)
+        return out.scatter_(-1, self.places, 1.0)[..., : self.size]
+
+    def linear(self, weight: th.Tensor, bias: th.Tensor, table: Optional[th.Tensor] = None,
+               rows: Optional[th.Tensor] = None) -> th.Tensor:
+        """``x @ weight[t].T + bias[t]`` of each learner ``t`` (``weight`` ``(T, H, size)``, ``bias`` ``(T, H)``) at its
+        inputs: each output the sum of the weights' columns at the set places, one ``embedding_bag`` over the
+        learners' transposed weights with a zero row last for the padding (its ``padding_idx`` is several times
+        slower). ``table``: those rows already made (:meth:`table`), ``rows`` ``(T,)`` the learners' blocks in it."""
+        t, h, size = weight.shape
+        if table is None:
+            table, rows = self.table(weight), th.arange(t, device=weight.device)
+        shift = (rows * size).view(t, 1, 1)
+        places = th.where(self.places < size, self.places + shift, len(table) - 1)
+        out = F.embedding_bag(places.reshape(-1, places.shape[-1]), table, mode="sum")
+        return out.view(*places.shape[:2], h) + bias.unsqueeze(1)
+
+    @staticmethod
+    def table(weight: th.Tensor) -> th.Tensor:
+        """The rows :meth:`linear` sums: each learner's weights ``(T, H, size)`` transposed, one block of ``size`` rows
+        a learner, then a zero row."""
+        t, h, size = weight.shape
+        table = th.empty((t * size + 1, h), dtype=weight.dtype, device=weight.device)
+        table[:-1].view(t, size, h).copy_(weight.transpose(1, 2))
+        table[-1] = 0.0
+        return table
+
 
 def _mlp_layers(q_net: th.nn.Module) -> Optional[list[tuple[str, Any]]]:
     """The layers of an SB3 ``QNetwork`` that is a flattened input through Linear layers and parameter-free
@@ -256,6 +313,10 @@ class StackedDQN:
 
     #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
     _shared_priorities = False
+    #: with ``one_hot``, the shared replay keeps the places of the set indicators of what it stores (:meth:`_encoded`),
+    #: and the written-out MLP update of :meth:`train_rounds` reads them (:class:`Indicators`: the first layer's
+    #: product as sums of a few dozen weight columns) instead of encoding every drawn state densely
+    _encoded_replay = True
 
     def __init__(
         self,
@@ -360,9 +421,13 @@ class StackedDQN:
         # a ReLU MLP (SB3's default): its backward pass is written out, no autograd graph per update
         self._relu_mlp = self._layers is not None and all(
             kind == "linear" or isinstance(item, th.nn.ReLU) for kind, item in self._layers)
+        self._keeps_encoded = self._encoded_replay and self._one_hot is not None and self._relu_mlp and not self._transpose
+        if self._keeps_encoded:
+            self.replay.keep_encoded(self._encoded)
         # every sub-goal's parameters as one row of a (capacity, P) tensor: the update is one Adam step on one tensor
         self.params = th.zeros((0, self._offsets[-1]), device=self.device)
         self.target = th.zeros_like(self.params)
+        self._target_rows: Optional[th.Tensor] = None  # the target networks' first layer as Indicators.table rows
         self._views: dict[Any, Any] = {}  # views of the stacked tensors (_unflatten, _adam_rows)
         self.exp_avg = th.zeros_like(self.params)
         self.exp_avg_sq = th.zeros_like(self.params)
@@ -427,15 +492,21 @@ class StackedDQN:
             return self._vq_generic(flat, obs)
         return self._mlp_forward(flat, self._mlp_input(obs))[-1]
 
-    def _mlp_forward(self, flat: th.Tensor, x: th.Tensor) -> list[th.Tensor]:
+    def _mlp_forward(self, flat: th.Tensor, x: Any, first_table: Optional[tuple[th.Tensor, th.Tensor]] = None
+                     ) -> list[th.Tensor]:
         """A plain MLP's forward pass for every learner at once (batched matrix products): the output of every
-        layer, the input first and the Q-values ``(T, N, A)`` last (the backward pass reads them)."""
+        layer, the input first and the Q-values ``(T, N, A)`` last (the backward pass reads them). ``x``: a tensor
+        ``(T, N, D)`` or :class:`Indicators`; ``first_table``: their first layer's rows already made
+        (:meth:`Indicators.table`) and each learner's block in them."""
         params = self._unflatten(flat)
         outputs = [x]
         for kind, item in self._layers:
             if kind == "linear":
                 weight, bias = params[item + ".weight"], params[item + ".bias"]
-                x = th.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
+                if isinstance(x, Indicators):  # one-hot inputs: sums of the weights' columns
+                    x = x.linear(weight, bias, *(first_table or (None, None)))
+                else:
+                    x = th.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
             elif self._relu_mlp:  # in place: the backward pass reads only the activated output
                 x = th.relu_(x)
             else:
@@ -457,6 +528,7 @@ class StackedDQN:
             kind, item = self._layers[i]
             if kind == "linear":
                 layer_input = outputs[i][:, n]
+                layer_input = layer_input.dense() if isinstance(layer_input, Indicators) else layer_input
                 grads[item + ".weight"] = th.bmm(grad.transpose(1, 2), layer_input)
                 grads[item + ".bias"] = grad.sum(dim=1)
                 if i > 0:
@@ -465,6 +537,13 @@ class StackedDQN:
                 grad = grad * (outputs[i + 1][:, n] > 0)
         return th.cat([grads[name].reshape(len(flat), -1) for name in self._names], dim=1)
 
+    def _target_table(self) -> th.Tensor:
+        """The first layer of every learner's target network as :meth:`Indicators.table` rows, made again only when a
+        target network changes (every ``target_update_interval`` ticks): one transposition less per update."""
+        if self._target_rows is None:
+            self._target_rows = Indicators.table(self._unflatten(self.target)[self._layers[0][1] + ".weight"])
+        return self._target_rows
+
     def _grow(self, capacity: int) -> None:
         def extend(old: th.Tensor) -> th.Tensor:
             new = th.zeros((capacity, old.shape[1]), dtype=old.dtype, device=self.device)
@@ -472,6 +551,7 @@ class StackedDQN:
             return new
 
         self.params, self.target = extend(self.params), extend(self.target)
+        self._target_rows = None
         self._views.clear()
         self.exp_avg, self.exp_avg_sq = extend(self.exp_avg), extend(self.exp_avg_sq)
         steps = th.zeros(capacity, device=self.device)
@@ -492,6 +572,7 @@ class StackedDQN:
         flat = th.cat([value.detach().reshape(-1) for _, value in fresh.named_parameters()])
         self.params[goal] = flat
         self.target[goal] = flat
+        self._target_rows = None
         self.exp_avg[goal] = 0.0
         self.exp_avg_sq[goal] = 0.0
         self.adam_steps[goal] = 0
@@ -531,7 +612,15 @@ class StackedDQN:
         """The shared replay of ``n_envs`` env streams: ``buffer_size`` transitions in all, as SB3's replay buffers
         divide their size among the envs."""
         capacity = max(self.buffer_size // n_envs, int(self._replay_kwargs["n_steps"]) + 1)
-        return SharedReplay(capacity, n_envs=n_envs, **self._replay_kwargs)
+        replay = SharedReplay(capacity, n_envs=n_envs, **self._replay_kwargs)
+        if getattr(self, "_keeps_encoded", False):
+            replay.keep_encoded(self._encoded)
+        return replay
+
+    def _encoded(self, obs: np.ndarray) -> np.ndarray:
+        """What the networks read of observations ``(..., H, W, C)`` with ``one_hot``, as the places of the set
+        indicators (:meth:`OneHotCodes.places`; the replay keeps them: :meth:`SharedReplay.keep_encoded`)."""
+        return self._one_hot.places(self._crop(obs))
 
     def set_n_envs(self, n_envs: int) -> None:
         """Step ``n_envs`` envs from now on: a new, empty replay with a stream per env (as SB3's ``set_env`` starts
@@ -654,6 +743,7 @@ class StackedDQN:
         if due_targets.any():
             index = th.as_tensor(np.flatnonzero(due_targets), device=self.device)
             self.target[index] = self.params[index]
+            self._target_rows = None
 
     def bounded(self, goals: np.ndarray, acting: np.ndarray) -> np.ndarray:
         """The sub-goals of ``goals`` (due for an update) that this round updates, at most ``max_updates``: those
@@ -704,8 +794,18 @@ class StackedDQN:
             return t.reshape(learners, reps, -1, *t.shape[2:]).transpose(0, 1).reshape(reps * learners, -1, *t.shape[2:])
 
         if self._relu_mlp:  # one forward pass of the online networks over s and the closing states, backward by hand
-            x = np.concatenate([per_learner(self._crop(batch.observations)), per_learner(self._crop(next_obs))], axis=1)
-            outputs = self._mlp_forward(params, self._mlp_input(self._tensor(x, cropped=True)))
+            if batch.encoded_observations is not None:  # the places of the set indicators, kept by the replay
+                closing = batch.encoded_next_observations
+                if lower_bound:
+                    closing = np.concatenate([closing, batch.encoded_behaviour_next_observations], axis=1)
+                x = np.concatenate([per_learner(batch.encoded_observations), per_learner(closing)], axis=1)
+                size = self._shapes[0][1]
+                most = max(int((x < size).sum(axis=-1).max()), 1)  # each state's places first: cut the padding
+                inputs = Indicators(th.as_tensor(x[..., :most].astype(np.int64), device=self.device), size)
+            else:
+                x = np.concatenate([per_learner(self._crop(batch.observations)), per_learner(self._crop(next_obs))], axis=1)
+                inputs = self._mlp_input(self._tensor(x, cropped=True))
+            outputs = self._mlp_forward(params, inputs)
             q_s = per_round(outputs[-1][:, : reps * n])
             q, next_q_online = q_s.gather(-1, actions)[..., 0], per_round(outputs[-1][:, reps * n :])
         else:
@@ -714,7 +814,9 @@ class StackedDQN:
             next_q_online = None
         with th.no_grad():
             if self._relu_mlp:  # the closing states as the online pass read them (converted once)
-                next_q_target = per_round(self._mlp_forward(self._take(self.target, index), outputs[0][:, reps * n :])[-1])  # (T, B or 2B, A)
+                closing = outputs[0][:, reps * n :]
+                table = None if not isinstance(closing, Indicators) else (self._target_table(), th.as_tensor(goals[:learners], device=self.device))
+                next_q_target = per_round(self._mlp_forward(self._take(self.target, index), closing, table)[-1])  # (T, B or 2B, A)
             else:
                 next_obs_t = self._tensor(next_obs)
                 next_q_target = self._vq(self._take(self.target, index), next_obs_t)
@@ -807,7 +909,8 @@ class StackedDQN:
     def replay_state(self) -> dict[str, Any]:
         """The shared replay's stored transitions, priorities and sub-goal keys, for a file (:meth:`HhP.save_replay_buffer`)."""
         return {"format": "sb3_hhp.SharedReplay", "goal_keys": list(self.replay.goal_keys),
-                "replay": buffer_state(self.replay, self.replay.capacity, self.replay.size(), skip=("_achieved",))}
+                "replay": buffer_state(self.replay, self.replay.capacity, self.replay.size(),
+                                       skip=("_achieved", "_encode", "encoded_observations", "encoded_next_observations"))}
 
     def load_replay_state(self, state: Any, truncate_last_traj: bool = True) -> None:
         """Refill the shared replay from :meth:`replay_state` (the learners' sub-goals must be the file's).
@@ -821,6 +924,8 @@ class StackedDQN:
                              f"has {len(self.replay.goal_keys)} (or others): load the replay saved with this model")
         load_buffer_state(self.replay, state["replay"], self.replay.capacity, "the sub-goal learners' replay")
         replay = self.replay
+        if self._keeps_encoded:  # not in the file: encoded again from the stored observations
+            replay.keep_encoded(self._encoded)
         if truncate_last_traj and replay.size() > 0:
             newest = (replay.pos - 1) % replay.capacity
             replay.truncated[newest] |= ~replay.terminated[newest]
@@ -836,6 +941,7 @@ class StackedDQN:
             raise ValueError("The saved sub-goal learners have another network than subpolicy_kwargs builds: load the "
                              "model with the subpolicy_kwargs it was trained with")
         self.params[:n], self.target[:n] = state["params"].to(self.device), state["target"].to(self.device)
+        self._target_rows = None
         self.exp_avg[:n], self.exp_avg_sq[:n] = state["exp_avg"].to(self.device), state["exp_avg_sq"].to(self.device)
         self.adam_steps[:n] = state["adam_steps"]
         self._load_counters(state)
@@ -911,6 +1017,7 @@ class SharedHeadsDQN(StackedDQN):
     """
 
     _shared_priorities = True
+    _encoded_replay = False  # its update reads the observations through the trunk (:meth:`train`)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         if kwargs.get("carry_relabel"):

@@ -137,6 +137,10 @@ class GoalBatch(NamedTuple):
     behaviour_next_observations: Optional[np.ndarray] = None
     behaviour_dones: Optional[np.ndarray] = None
     behaviour_discounts: Optional[np.ndarray] = None
+    # what the networks read of each state, kept by the replay (:meth:`SharedReplay.keep_encoded`), else None
+    encoded_observations: Optional[np.ndarray] = None
+    encoded_next_observations: Optional[np.ndarray] = None
+    encoded_behaviour_next_observations: Optional[np.ndarray] = None
 
 
 class SharedReplay:
@@ -164,6 +168,10 @@ class SharedReplay:
     #: replays pickled before the carried counterfactual existed draw without it
     carry_relabel = 0.0
     counterfactual: Optional[Callable] = None
+    #: what the learners' networks read of an observation, kept beside it (:meth:`keep_encoded`); None: nothing kept
+    _encode: Optional[Callable[[np.ndarray], np.ndarray]] = None
+    encoded_observations: Optional[np.ndarray] = None
+    encoded_next_observations: Optional[np.ndarray] = None
 
     def __init__(
         self,
@@ -257,6 +265,24 @@ class SharedReplay:
         self.trees.fill(goal, stored)
         return goal
 
+    def keep_encoded(self, encode: Optional[Callable[[np.ndarray], np.ndarray]], chunk: int = 1024) -> None:
+        """Keep ``encode(observation)`` beside every stored observation and next observation (``encode`` maps
+        ``(..., *obs)`` to ``(..., *encoded)``, e.g. the learners' one-hot indicators as uint8), written once when a
+        step is stored instead of at every draw; drawn batches then carry the encoded rows (``encoded_*``). The
+        transitions stored so far are encoded now, ``chunk`` rows at a time; None keeps nothing. Not saved with the
+        replay (:func:`~sb3_hhp.dqn.buffers.buffer_state` skips it): a loaded replay is encoded again."""
+        self._encode = encode
+        if encode is None:
+            self.encoded_observations = self.encoded_next_observations = None
+            return
+        probe = np.asarray(encode(self.observations[:1, :1]))
+        self.encoded_observations = np.zeros((self.capacity, self.n_envs, *probe.shape[2:]), dtype=probe.dtype)
+        self.encoded_next_observations = np.zeros_like(self.encoded_observations)
+        for start in range(0, self.size(), chunk):
+            rows = slice(start, min(start + chunk, self.size()))
+            self.encoded_observations[rows] = encode(self.observations[rows])
+            self.encoded_next_observations[rows] = encode(self.next_observations[rows])
+
     def done(self, key_ids: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """``done(s, g)`` for arrays of key ids and sub-goals (broadcast)."""
         return self._done_table[key_ids, goals]
@@ -275,6 +301,9 @@ class SharedReplay:
         self.gave_up[pos] = gave_up
         self.acting[pos] = acting
         self.intrinsic[pos] = intrinsic
+        if self._encode is not None:
+            self.encoded_observations[pos] = self._encode(self.observations[pos])
+            self.encoded_next_observations[pos] = self._encode(self.next_observations[pos])
         leaves = pos * self.n_envs + np.arange(self.n_envs)
         n_goals = self.n_goals
         if self.shared_priorities or self.share_experience:
@@ -301,6 +330,11 @@ class SharedReplay:
             b_returns, b_last, b_discounts, b_dones = behaviour
             extra = dict(behaviour_returns=b_returns, behaviour_next_observations=self.next_observations[b_last, cols],
                          behaviour_dones=b_dones, behaviour_discounts=b_discounts)
+        if self._encode is not None:
+            extra.update(encoded_observations=self.encoded_observations[rows, cols],
+                         encoded_next_observations=self.encoded_next_observations[last, cols])
+            if behaviour is not None:
+                extra["encoded_behaviour_next_observations"] = self.encoded_next_observations[b_last, cols]
         batch = GoalBatch(
             goals=goals, observations=self.observations[rows, cols], actions=self.actions[rows, cols], returns=returns,
             next_observations=self.next_observations[last, cols], dones=dones, discounts=discounts,
@@ -338,6 +372,11 @@ class SharedReplay:
             if lower_bound:
                 batch.behaviour_returns[t, at], batch.behaviour_dones[t, at] = reward, terminal
                 batch.behaviour_next_observations[t, at], batch.behaviour_discounts[t, at] = next_obs[usable], self.gamma
+            if batch.encoded_observations is not None:  # the changed states, encoded as the stored ones are
+                encoded_next = self._encode(next_obs[usable])
+                batch.encoded_observations[t, at], batch.encoded_next_observations[t, at] = self._encode(obs[usable]), encoded_next
+                if lower_bound:
+                    batch.encoded_behaviour_next_observations[t, at] = encoded_next
 
     def importance_weights(self, probabilities: np.ndarray) -> np.ndarray:
         """``w = (N * P(i))^-beta``, normalised by the largest weight of each row of draws."""
@@ -400,5 +439,6 @@ class SharedReplay:
         self.trees.update(np.asarray(goals), leaves, (np.abs(td_errors) + self.priority_eps) ** self.priority_alpha)
 
     def nbytes(self) -> int:
-        return sum(array.nbytes for array in (self.observations, self.next_observations, self.actions, self.key_ids,
-                                                self.terminated, self.truncated, self.gave_up, self.acting, self.intrinsic))
+        arrays = (self.observations, self.next_observations, self.actions, self.key_ids, self.terminated, self.truncated,
+                  self.gave_up, self.acting, self.intrinsic, self.encoded_observations, self.encoded_next_observations)
+        return sum(array.nbytes for array in arrays if array is not None)
