@@ -531,13 +531,17 @@ def test_the_speed_script_times_an_entry_as_it_trains() -> None:
 
 def test_the_speed_script_splits_a_learner_call() -> None:
     """``speed.py call`` times the sub-goal learners' grouped update from a saved state and splits it into the batched
-    products, torch's other operators and what runs outside torch."""
+    products, torch's other operators and what runs outside torch; with call_ab, two settings of the learners timed
+    in alternating blocks too (here the written-out backward pass against autograd's)."""
     import argparse
 
     from benchmarks import speed
 
     result = speed.learner_call(argparse.Namespace(env="MiniGrid-DoorKey-5x5-v0", hhp_kwargs='{"device": "cpu"}', seed=0,
-                                                   start=800, n_envs=8, repeats=1))
+                                                   start=800, n_envs=8, repeats=2, call_ab=True,
+                                                   learners_a='{"_relu_mlp": true}', learners_b='{"_relu_mlp": false}'))
+    assert len(result["call_ms_a"]) == len(result["call_ms_b"]) == 2 and min(result["call_ms_a"] + result["call_ms_b"]) > 0
+    assert result["learners_b"] == {"_relu_mlp": False} and result["median_ratio_b_to_a"] > 0
     assert result["rounds"] == 2 and 1 <= result["learners_per_round"] <= result["snapshot_subgoals"]
     assert result["products_ms"] > 0 and result["other_torch_ms"] > 0
     assert "aten::baddbmm" in result["top_torch_ops_ms"]
