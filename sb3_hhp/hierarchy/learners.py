@@ -815,7 +815,9 @@ class StackedDQN:
         with th.no_grad():
             if self._relu_mlp:  # the closing states as the online pass read them (converted once)
                 closing = outputs[0][:, reps * n :]
-                table = None if not isinstance(closing, Indicators) else (self._target_table(), th.as_tensor(goals[:learners], device=self.device))
+                table = None  # the target networks' first layer as rows to sum, kept until they change
+                if isinstance(closing, Indicators):
+                    table = (self._target_table(), th.as_tensor(goals[:learners], device=self.device))
                 next_q_target = per_round(self._mlp_forward(self._take(self.target, index), closing, table)[-1])  # (T, B or 2B, A)
             else:
                 next_obs_t = self._tensor(next_obs)

@@ -267,7 +267,7 @@ class SharedReplay:
 
     def keep_encoded(self, encode: Optional[Callable[[np.ndarray], np.ndarray]], chunk: int = 1024) -> None:
         """Keep ``encode(observation)`` beside every stored observation and next observation (``encode`` maps
-        ``(..., *obs)`` to ``(..., *encoded)``, e.g. the learners' one-hot indicators as uint8), written once when a
+        ``(..., *obs)`` to ``(..., *encoded)``, e.g. the places of the learners' one-hot indicators), written once when a
         step is stored instead of at every draw; drawn batches then carry the encoded rows (``encoded_*``). The
         transitions stored so far are encoded now, ``chunk`` rows at a time; None keeps nothing. Not saved with the
         replay (:func:`~sb3_hhp.dqn.buffers.buffer_state` skips it): a loaded replay is encoded again."""
