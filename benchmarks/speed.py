@@ -18,8 +18,9 @@ number of steps: the speed late in a run, when sub-goals have accumulated and ep
     python benchmarks/speed.py late --model RUN/MiniGrid-DoorKey-8x8-v0.zip --n-envs 8
 
 ``ab``: two settings of the sub-goal learners (``--learners-a``, ``--learners-b``, JSON attributes, e.g.
-``{"grouped_rounds": true}``; ``{"keep_encoded": false}``: the replay keeps no places of one-hot indicators) trained on, alternately, from one saved state of a run (HhP.save and save_replay_buffer
-at ``--start`` steps), ``--repeats`` pairs of ``--profile-steps`` steps each::
+``{"grouped_rounds": true}``; ``{"keep_encoded": false}``: the replay keeps no places of one-hot indicators) trained
+on, alternately, from one saved state of a run (HhP.save and save_replay_buffer at ``--start`` steps), ``--repeats``
+pairs of ``--profile-steps`` steps each::
 
     python benchmarks/speed.py ab --env MiniGrid-DoorKey-8x8-v0 --n-envs 8 --start 20000 --profile-steps 6000
 
