@@ -818,7 +818,8 @@ class StackedDQN:
                 table = None  # the target networks' first layer as rows to sum, kept until they change
                 if isinstance(closing, Indicators):
                     table = (self._target_table(), th.as_tensor(goals[:learners], device=self.device))
-                next_q_target = per_round(self._mlp_forward(self._take(self.target, index), closing, table)[-1])  # (T, 2B, A)
+                # (T, B or 2B, A): the closing states of the own returns, and of the behaviour's with the lower bound
+                next_q_target = per_round(self._mlp_forward(self._take(self.target, index), closing, table)[-1])
             else:
                 next_obs_t = self._tensor(next_obs)
                 next_q_target = self._vq(self._take(self.target, index), next_obs_t)
