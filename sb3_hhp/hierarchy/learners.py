@@ -392,7 +392,6 @@ class StackedDQN:
             priority_alpha=kw["prioritized_replay_alpha"], priority_beta=kw["prioritized_replay_beta"],
             priority_eps=kw["prioritized_replay_eps"], carry_relabel=carry_relabel, counterfactual=counterfactual, seed=seed,
         )
-        self.replay = self._make_replay(n_envs)
         # SB3's CNN reads channel-first images: the env's channel-last frames are turned when they reach a network
         net_space = observation_space
         if self._cells is not None:  # what the networks read: the central cells
@@ -422,8 +421,7 @@ class StackedDQN:
         self._relu_mlp = self._layers is not None and all(
             kind == "linear" or isinstance(item, th.nn.ReLU) for kind, item in self._layers)
         self._keeps_encoded = self._encoded_replay and self._one_hot is not None and self._relu_mlp and not self._transpose
-        if self._keeps_encoded:
-            self.replay.keep_encoded(self._encoded)
+        self.replay = self._make_replay(n_envs)
         # every sub-goal's parameters as one row of a (capacity, P) tensor: the update is one Adam step on one tensor
         self.params = th.zeros((0, self._offsets[-1]), device=self.device)
         self.target = th.zeros_like(self.params)
@@ -613,7 +611,7 @@ class StackedDQN:
         divide their size among the envs."""
         capacity = max(self.buffer_size // n_envs, int(self._replay_kwargs["n_steps"]) + 1)
         replay = SharedReplay(capacity, n_envs=n_envs, **self._replay_kwargs)
-        if getattr(self, "_keeps_encoded", False):
+        if self._keeps_encoded:
             replay.keep_encoded(self._encoded)
         return replay
 
@@ -913,7 +911,7 @@ class StackedDQN:
         """The shared replay's stored transitions, priorities and sub-goal keys, for a file (:meth:`HhP.save_replay_buffer`)."""
         return {"format": "sb3_hhp.SharedReplay", "goal_keys": list(self.replay.goal_keys),
                 "replay": buffer_state(self.replay, self.replay.capacity, self.replay.size(),
-                                       skip=("_achieved", "_encode", "encoded_observations", "encoded_next_observations"))}
+                                       skip=("_achieved", *SharedReplay.DERIVED))}
 
     def load_replay_state(self, state: Any, truncate_last_traj: bool = True) -> None:
         """Refill the shared replay from :meth:`replay_state` (the learners' sub-goals must be the file's).

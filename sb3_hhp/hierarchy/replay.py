@@ -172,6 +172,8 @@ class SharedReplay:
     _encode: Optional[Callable[[np.ndarray], np.ndarray]] = None
     encoded_observations: Optional[np.ndarray] = None
     encoded_next_observations: Optional[np.ndarray] = None
+    #: attributes computed from the stored ones, left out of a saved replay (found again when it is loaded)
+    DERIVED = ("_encode", "encoded_observations", "encoded_next_observations")
 
     def __init__(
         self,
@@ -301,9 +303,9 @@ class SharedReplay:
         self.gave_up[pos] = gave_up
         self.acting[pos] = acting
         self.intrinsic[pos] = intrinsic
-        if self._encode is not None:
-            self.encoded_observations[pos] = self._encode(self.observations[pos])
-            self.encoded_next_observations[pos] = self._encode(self.next_observations[pos])
+        if self._encode is not None:  # one call for the step's states and next states
+            self.encoded_observations[pos], self.encoded_next_observations[pos] = self._encode(
+                np.stack([self.observations[pos], self.next_observations[pos]]))
         leaves = pos * self.n_envs + np.arange(self.n_envs)
         n_goals = self.n_goals
         if self.shared_priorities or self.share_experience:
