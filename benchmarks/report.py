@@ -135,7 +135,8 @@ def mean_curve(curves: Sequence[pd.DataFrame], column: str = "success") -> Optio
 
 def unfinished_runs(results: pd.DataFrame, folder: Path) -> pd.DataFrame:
     """The runs with a log folder (``logs/<run>``) and no row in ``results``: still training, or stopped. The newest
-    periodic evaluations under each log folder (every part of a resumed run) become ``curves/<run>.partial.csv``.
+    periodic evaluations under each log folder (every part of a resumed run) become ``curves/<run>.partial.csv``; a
+    finished run's partial curve, written while it ran, is removed (its row's curve replaces it).
 
     :return: one row per run: ``env`` (as in run names: ``/`` written ``-``), ``variant``, ``seed``, ``steps`` (the
         last periodic evaluation's, 0 before any), ``success`` (at that evaluation), ``curve`` (relative to ``folder``)
@@ -143,10 +144,13 @@ def unfinished_runs(results: pd.DataFrame, folder: Path) -> pd.DataFrame:
     finished = {Experiment(row.env, row.variant, int(row.seed), int(row.steps)).name for row in results.itertuples()}
     rows = []
     for log in sorted((folder / "logs").glob("*__*__s*")):
-        if not log.is_dir() or log.name in finished:
+        if not log.is_dir():
+            continue
+        relative = Path("curves") / f"{log.name}.partial.csv"
+        if log.name in finished:
+            (folder / relative).unlink(missing_ok=True)
             continue
         env, variant, seed = log.name.rsplit("__", 2)
-        relative = Path("curves") / f"{log.name}.partial.csv"
         written = _curve_from_evaluations(attempt_evaluations(log), folder / relative)
         curve = pd.read_csv(folder / relative) if written else None
         rows.append({"env": env, "variant": variant, "seed": int(seed[1:]),

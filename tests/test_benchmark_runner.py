@@ -485,7 +485,12 @@ def test_report_shows_runs_that_have_no_row_yet(tmp_path):
     write_evaluations(tmp_path / "logs" / "MiniGrid-DoorKey-8x8-v0__hhp__s2" / "hhp" / "run_1" / "evaluations.npz",
                       [200, 400], [[0.0, 0.0, 0.0, 0.0], [0.9, 0.0, 0.8, 0.0]])
     (tmp_path / "logs" / "MiniGrid-DoorKey-8x8-v0__ppo__s7").mkdir(parents=True)
+    # seed 0's curve from while it ran, left over from a report made before its row was written
+    stale = tmp_path / "curves" / "MiniGrid-DoorKey-8x8-v0__hhp__s0.partial.csv"
+    stale.parent.mkdir(parents=True, exist_ok=True)
+    stale.write_text("steps,success\n200,0.0\n")
     table, markdown, plots = report.report(csv_path)
+    assert not stale.exists(), "a finished run's partial curve outlived its row"
     assert "| MiniGrid-DoorKey-8x8-v0 HhP seed 2 | 400 | 0.50 |" in table
     assert "| MiniGrid-DoorKey-8x8-v0 PPO seed 7 | 0 | – |" in table
     assert "seed 0 |" not in table
