@@ -639,7 +639,9 @@ def test_one_hot_places_kept_by_the_replay_train_as_the_dense_indicators_encoded
     encoded_each_draw.learn(600)
     assert kept.subpolicies.n_updates.sum() > 0
     assert kept.subpolicies.n_updates.tolist() == encoded_each_draw.subpolicies.n_updates.tolist()
-    th.testing.assert_close(kept.subpolicies.params, encoded_each_draw.subpolicies.params, rtol=1e-4, atol=1e-6)
+    # compared in SB3's order, as saved (the kept places' learners keep each first layer as rows)
+    th.testing.assert_close(kept.subpolicies.state_dict()["params"], encoded_each_draw.subpolicies.state_dict()["params"],
+                            rtol=1e-4, atol=1e-6)
     assert not th.equal(kept.subpolicies.params, kept.subpolicies.target)  # the updates moved the networks
     size, one_hot = replay.size(), kept.subpolicies._one_hot
     for stored, encoded in ((replay.observations, replay.encoded_observations),
@@ -655,6 +657,12 @@ def test_one_hot_places_kept_by_the_replay_train_as_the_dense_indicators_encoded
     loaded.load_replay_buffer(tmp_path / "replay")
     np.testing.assert_array_equal(loaded.subpolicies.replay.encoded_next_observations[:size],
                                   replay.encoded_next_observations[:size])
+    # the file holds SB3's order; loading lays the first layers out as rows again, bit for bit, Adam's moments too
+    n = len(kept.subpolicies)
+    for name in ("params", "target", "exp_avg", "exp_avg_sq"):
+        th.testing.assert_close(getattr(loaded.subpolicies, name)[:n], getattr(kept.subpolicies, name)[:n], rtol=0, atol=0)
+    obs = kept.subpolicies.replay.observations[:4, 0]
+    th.testing.assert_close(loaded.subpolicies.q_values(np.arange(4) % n, obs), kept.subpolicies.q_values(np.arange(4) % n, obs))
 
 
 def test_exploration_run_steps_reaches_the_learners_and_saves(tmp_path) -> None:

@@ -603,7 +603,8 @@ def test_a_carrying_subgoal_learns_from_empty_handed_steps_as_they_would_have_go
 def test_the_places_of_set_indicators_are_the_one_hot_inputs_and_a_first_layer_reads_them_as_the_dense_product() -> None:
     """OneHotCodes.places gives, per observation, the places of the indicators encode sets in its flattened output,
     increasing, then the input size as padding up to one place per used channel of every cell; Indicators.linear is
-    each learner's x @ W.T + b at those inputs (the padding cut or not), and Indicators.dense the inputs themselves."""
+    each learner's x @ W.T + b at those inputs (the padding cut or not), read from the weights kept as rows, and
+    Indicators.add_outer adds x.T @ g to those rows (a first layer's gradient) and leaves the zero rows zero."""
     space = spaces.Box(0, 10, (5, 4, 3), np.uint8)
     cells = np.random.default_rng(1).integers(0, 11, (2, 6, 5, 4, 3)).astype(np.uint8)
     cells[0, 0] = 0  # an observation with no listed code: no indicator set
@@ -615,14 +616,27 @@ def test_the_places_of_set_indicators_are_the_one_hot_inputs_and_a_first_layer_r
         assert places.shape == (2, 6, 5 * 4 * len(codes.channels)) and places.dtype == np.int16
         for row, row_places in zip(dense.reshape(12, -1), places.reshape(12, -1)):
             assert row_places.tolist() == np.flatnonzero(row).tolist() + [size] * (len(row_places) - int(row.sum()))
-        weight, bias = th.randn(2, 5, size, generator=th.Generator().manual_seed(0)), th.randn(2, 5)
-        expected = th.baddbmm(bias.unsqueeze(1), th.as_tensor(dense), weight.transpose(1, 2))
+        generator = th.Generator().manual_seed(0)
+        weight, bias = th.randn(2, 5, size, generator=generator), th.randn(2, 5, generator=generator)
+        x = th.as_tensor(dense)
+        expected = th.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
+        grad = th.randn(2, 6, 5, generator=generator)
         most = int((dense > 0).sum(-1).max())
         for kept in (places, places[..., :most]):
             inputs = Indicators(th.as_tensor(kept.astype(np.int64)), size)
-            th.testing.assert_close(inputs.dense(), th.as_tensor(dense))
-            th.testing.assert_close(inputs[:, 2:].dense(), th.as_tensor(dense[:, 2:]))
-            th.testing.assert_close(inputs.linear(weight, bias), expected, rtol=1e-5, atol=1e-5)
+            table, starts = Indicators.rows(weight)
+            assert table.shape == (2 * (size + 1), 5) and starts.tolist() == [0, size + 1]
+            th.testing.assert_close(inputs.linear(table, starts, bias), expected, rtol=1e-5, atol=1e-5)
+            th.testing.assert_close(inputs[:, 2:].linear(table, starts, bias), expected[:, 2:], rtol=1e-5, atol=1e-5)
+            # the second learner's rows alone, at another place in a larger table
+            wide = th.cat([th.zeros(3, 5), table[size + 1 :]])
+            th.testing.assert_close(inputs[1:].linear(wide, th.tensor([3]), bias[1:]), expected[1:], rtol=1e-5, atol=1e-5)
+            gradient = th.ones_like(table)
+            gradient[starts + size] = 0.0
+            inputs.add_outer(grad, gradient, starts)
+            expected_gradient = th.bmm(x.transpose(1, 2), grad)  # (2, size, 5): x.T @ g as rows
+            th.testing.assert_close(gradient.view(2, size + 1, 5)[:, :size], 1.0 + expected_gradient, rtol=1e-5, atol=1e-5)
+            assert not gradient[starts + size].any()  # the padding's rows stay zero
 
 
 def test_one_hot_updates_read_the_kept_places_and_learn_as_the_dense_input_does(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -651,10 +665,21 @@ def test_one_hot_updates_read_the_kept_places_and_learn_as_the_dense_input_does(
         runs.append((learners, losses))
     (kept, kept_losses), (dense, dense_losses) = runs
     assert kept.n_updates.min() > 20 and kept.n_updates.tolist() == dense.n_updates.tolist()
-    th.testing.assert_close(kept.params, dense.params, rtol=1e-4, atol=1e-6)
-    th.testing.assert_close(kept.exp_avg_sq, dense.exp_avg_sq, rtol=1e-3, atol=1e-10)
+    # the kept places' learners keep each first layer as rows (plus zeros): compared in SB3's order, as saved
+    assert kept.params.shape[1] > dense.params.shape[1]
+    kept_state, dense_state = kept.state_dict(), dense.state_dict()
+    th.testing.assert_close(kept_state["params"], dense_state["params"], rtol=1e-4, atol=1e-6)
+    th.testing.assert_close(kept_state["target"], dense_state["target"], rtol=1e-4, atol=1e-6)
+    th.testing.assert_close(kept_state["exp_avg_sq"], dense_state["exp_avg_sq"], rtol=1e-3, atol=1e-10)
     np.testing.assert_allclose(kept_losses, dense_losses, rtol=1e-4)
     assert not th.equal(kept.params[0], kept.target[0])
+    # the zeros of the layout stay zero through training; each learner's SB3 policy reads its own weights
+    size, width = kept._shapes[0][1], kept._shapes[0][0]
+    rows = kept.params[:3].view(3, -1, width)
+    assert not rows[:, size].any() and not kept.params[:3, kept._starts[-1] + kept._numels[-1]:].any()
+    for goal in range(3):
+        for name, value in kept.policy(goal).q_net.state_dict().items():
+            th.testing.assert_close(value, dense.policy(goal).q_net.state_dict()[name], rtol=1e-4, atol=1e-6)
 
 
 def test_encoded_copies_kept_by_the_replay_match_every_drawn_state_counterfactuals_included() -> None:

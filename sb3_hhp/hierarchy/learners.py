@@ -202,7 +202,11 @@ class OneHotCodes:
 
 class Indicators:
     """One-hot inputs ``(T, N, size)`` held as the places of their set indicators (``(T, N, P)``, padded with
-    ``size``: :meth:`OneHotCodes.places`): what a first layer reads as sums of its weights' columns."""
+    ``size``: :meth:`OneHotCodes.places`): what a first layer reads as sums of its weights' columns.
+
+    Learner ``t``'s first layer is read as rows of a table ``(R, H)``: input ``i``'s weights in row ``starts[t] + i``
+    and zeros in row ``starts[t] + size``, where the padding points (:meth:`rows` makes such a table; the stacked
+    learners keep their first layers so, :meth:`StackedDQN._layout`)."""
 
     def __init__(self, places: th.Tensor, size: int) -> None:
         self.places, self.size = places, size
@@ -211,34 +215,32 @@ class Indicators:
         """The inputs ``index`` of the leading ``(T, N)`` axes."""
         return Indicators(self.places[index], self.size)
 
-    def dense(self) -> th.Tensor:
-        """The inputs as a float tensor ``(..., size)`` of zeros and ones."""
-        out = th.zeros((*self.places.shape[:-1], self.size + 1), device=self.places.device)
-        return out.scatter_(-1, self.places, 1.0)[..., : self.size]
-
-    def linear(self, weight: th.Tensor, bias: th.Tensor, table: Optional[th.Tensor] = None,
-               rows: Optional[th.Tensor] = None) -> th.Tensor:
-        """``x @ weight[t].T + bias[t]`` of each learner ``t`` (``weight`` ``(T, H, size)``, ``bias`` ``(T, H)``) at its
-        inputs: each output the sum of the weights' columns at the set places, one ``embedding_bag`` over the
-        learners' transposed weights with a zero row last for the padding (its ``padding_idx`` is several times
-        slower). ``table``: those rows already made (:meth:`table`), ``rows`` ``(T,)`` the learners' blocks in it."""
-        t, h, size = weight.shape
-        if table is None:
-            table, rows = self.table(weight), th.arange(t, device=weight.device)
-        shift = (rows * size).view(t, 1, 1)
-        places = th.where(self.places < size, self.places + shift, len(table) - 1)
+    def linear(self, table: th.Tensor, starts: th.Tensor, bias: th.Tensor) -> th.Tensor:
+        """``x @ W[t].T + b[t]`` of each learner ``t`` at its inputs (``W[t]``: the rows of ``table`` from
+        ``starts[t]``, ``bias`` ``(T, H)``): each output the sum of the rows at the set places, one ``embedding_bag``
+        (the padding sums the zero row; its ``padding_idx`` is several times slower)."""
+        places = self.places + starts.view(-1, 1, 1)
         out = F.embedding_bag(places.reshape(-1, places.shape[-1]), table, mode="sum")
-        return out.view(*places.shape[:2], h) + bias.unsqueeze(1)
+        return out.view(*places.shape[:2], table.shape[1]) + bias.unsqueeze(1)
+
+    def add_outer(self, grad: th.Tensor, table: th.Tensor, starts: th.Tensor) -> None:
+        """``x[t].T @ grad[t]`` (``grad`` ``(T, N, H)``) added to learner ``t``'s rows of ``table`` (as :meth:`linear`
+        reads them): the gradient of a first layer kept as rows, each set place's row plus its sample's ``grad``; the
+        zero rows stay zero."""
+        places = self.places + starts.view(-1, 1, 1)
+        spread = grad.unsqueeze(2).expand(-1, -1, places.shape[-1], -1)  # each sample's gradient at each of its places
+        padding = table[starts + self.size].clone()
+        table.index_add_(0, places.reshape(-1), spread.reshape(-1, grad.shape[-1]))
+        table[starts + self.size] = padding
 
     @staticmethod
-    def table(weight: th.Tensor) -> th.Tensor:
-        """The rows :meth:`linear` sums: each learner's weights ``(T, H, size)`` transposed, one block of ``size`` rows
-        a learner, then a zero row."""
+    def rows(weight: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """Learners' first layers ``(T, H, size)`` as a table :meth:`linear` reads and each learner's first row in it:
+        a learner's ``size`` rows, then a zero row."""
         t, h, size = weight.shape
-        table = th.empty((t * size + 1, h), dtype=weight.dtype, device=weight.device)
-        table[:-1].view(t, size, h).copy_(weight.transpose(1, 2))
-        table[-1] = 0.0
-        return table
+        table = th.zeros((t, size + 1, h), dtype=weight.dtype, device=weight.device)
+        table[:, :size] = weight.transpose(1, 2)
+        return table.view(-1, h), th.arange(t, device=weight.device) * (size + 1)
 
 
 def _mlp_layers(q_net: th.nn.Module) -> Optional[list[tuple[str, Any]]]:
@@ -415,17 +417,17 @@ class StackedDQN:
         named = list(self._template.named_parameters())
         self._names = [name for name, _ in named]
         self._shapes = [tuple(value.shape) for _, value in named]
-        self._offsets = np.concatenate([[0], np.cumsum([value.numel() for _, value in named])]).tolist()
         self._layers = _mlp_layers(self._template)  # a plain MLP: batched matrix products, no vmap
         # a ReLU MLP (SB3's default): its backward pass is written out, no autograd graph per update
         self._relu_mlp = self._layers is not None and all(
             kind == "linear" or isinstance(item, th.nn.ReLU) for kind, item in self._layers)
-        self._keeps_encoded = self._encoded_replay and self._one_hot is not None and self._relu_mlp and not self._transpose
+        self._keeps_encoded = (self._encoded_replay and self._one_hot is not None and self._relu_mlp and not self._transpose
+                               and self._names[0] == self._layers[0][1] + ".weight")
+        self._layout()
         self.replay = self._make_replay(n_envs)
         # every sub-goal's parameters as one row of a (capacity, P) tensor: the update is one Adam step on one tensor
-        self.params = th.zeros((0, self._offsets[-1]), device=self.device)
+        self.params = th.zeros((0, self._row_size), device=self.device)
         self.target = th.zeros_like(self.params)
-        self._target_rows: Optional[th.Tensor] = None  # the target networks' first layer as Indicators.table rows
         self._views: dict[Any, Any] = {}  # views of the stacked tensors (_unflatten, _adam_rows)
         self.exp_avg = th.zeros_like(self.params)
         self.exp_avg_sq = th.zeros_like(self.params)
@@ -450,19 +452,70 @@ class StackedDQN:
     def __len__(self) -> int:
         return len(self.recent)
 
-    def _unflatten(self, flat: th.Tensor) -> dict[str, th.Tensor]:
-        """Named parameter views of flat rows (any leading shape). The views of the first rows of :attr:`params` or
-        :attr:`target` (read at every update) are kept: those tensors are only ever changed in place."""
-        stacked = flat._base is not None and (flat._base is self.params or flat._base is self.target)
-        key = (id(flat._base), tuple(flat.shape)) if stacked and flat.data_ptr() == flat._base.data_ptr() else None
+    def _layout(self) -> None:
+        """Where each parameter lies in a learner's row of the stacked tensors (:attr:`params`, :attr:`target`, Adam's
+        moments): SB3's parameters in their order, each flattened, except that with the replay's kept places
+        (:attr:`_keeps_encoded`) the first layer's weight ``(H, D)`` is kept as ``D`` rows of ``H`` (input ``i``'s
+        weights in row ``i``), then a zero row, and the learner's row is padded with zeros to a whole number of
+        ``H``: every learner's first layer is then rows of one ``(-1, H)`` view of a stacked tensor, which
+        :class:`Indicators` sums and adds gradients to in place (no copy of the weights a step). The zeros get no
+        gradient, so Adam leaves them zero. Saved models hold SB3's order (:meth:`_canonical`)."""
+        self._first_as_rows = self._keeps_encoded
+        self._numels = [int(np.prod(shape)) for shape in self._shapes]
+        self._starts, position = [], 0
+        for i, numel in enumerate(self._numels):
+            self._starts.append(position)
+            position += numel + (self._shapes[0][0] if i == 0 and self._first_as_rows else 0)
+        width = self._shapes[0][0] if self._first_as_rows else 1
+        self._row_size = -(-position // width) * width
+        self._table_rows = self._row_size // width  # a learner's rows in the (-1, H) view
+
+    def _unflatten(self, flat: th.Tensor, rest: bool = False) -> dict[str, th.Tensor]:
+        """Named parameter views of rows of the stacked layout (:meth:`_layout`; any leading shape), in SB3's shapes
+        (a first layer kept as rows is viewed transposed); ``rest``: ``flat`` holds the rows from the first layer's bias
+        on, and the first weight is left out. The views of :attr:`params` or :attr:`target` (read at every update) are
+        kept: those tensors are only ever changed in place."""
+        base, shift = flat._base, self._starts[1] if rest else 0
+        stacked = (base is not None and (base is self.params or base is self.target)
+                   and flat.data_ptr() - base.data_ptr() == shift * flat.element_size())  # their first rows
+        key = (id(base), tuple(flat.shape), rest) if stacked else None
         if key is not None and key in self._views:
             return self._views[key]
         lead = flat.shape[:-1]
-        views = {name: flat[..., start:stop].view(*lead, *shape)
-                 for name, shape, start, stop in zip(self._names, self._shapes, self._offsets[:-1], self._offsets[1:])}
+        views = {}
+        for i, (name, shape, start, numel) in enumerate(zip(self._names, self._shapes, self._starts, self._numels)):
+            if i == 0 and rest:
+                continue
+            piece = flat[..., start - shift : start - shift + numel]
+            if i == 0 and self._first_as_rows:
+                views[name] = piece.view(*lead, shape[1], shape[0]).transpose(-1, -2)
+            else:
+                views[name] = piece.view(*lead, *shape)
         if key is not None:  # a view holds its base, so the id stays that tensor's while the entry lives
             self._views[key] = views
         return views
+
+    def _canonical(self, rows: th.Tensor) -> th.Tensor:
+        """Rows ``(n, P)`` of the stacked layout in SB3's: each parameter flattened as its module holds it, in order."""
+        views = self._unflatten(rows)
+        return th.cat([views[name].reshape(len(rows), numel) for name, numel in zip(self._names, self._numels)], dim=1)
+
+    def _stored(self, canonical: th.Tensor) -> th.Tensor:
+        """The inverse of :meth:`_canonical`: rows of SB3's order as rows of the stacked layout."""
+        if canonical.shape[-1] != sum(self._numels):
+            raise ValueError(f"rows of {canonical.shape[-1]} parameters, the learners have {sum(self._numels)}")
+        rows = th.zeros((len(canonical), self._row_size), dtype=canonical.dtype, device=self.device)
+        views = self._unflatten(rows)
+        offsets = np.cumsum([0, *self._numels])
+        for name, shape, start, stop in zip(self._names, self._shapes, offsets[:-1], offsets[1:]):
+            views[name].copy_(canonical[:, start:stop].reshape(len(canonical), *shape))
+        return rows
+
+    def _first_rows(self, stacked: th.Tensor, goals: np.ndarray) -> tuple[th.Tensor, th.Tensor]:
+        """The first layers of a stacked tensor as the table :class:`Indicators` reads (a view) and the first row of
+        each learner of ``goals`` in it."""
+        return (stacked.view(-1, self._shapes[0][0]),
+                th.as_tensor(np.asarray(goals, dtype=np.int64) * self._table_rows, device=self.device))
 
     def _rows(self, goals: np.ndarray) -> Any:
         """An index of the learners ``goals`` into the stacked tensors: a slice (rows read in place) when they are the
@@ -490,21 +543,21 @@ class StackedDQN:
             return self._vq_generic(flat, obs)
         return self._mlp_forward(flat, self._mlp_input(obs))[-1]
 
-    def _mlp_forward(self, flat: th.Tensor, x: Any, first_table: Optional[tuple[th.Tensor, th.Tensor]] = None
+    def _mlp_forward(self, flat: th.Tensor, x: Any, first: Optional[tuple[th.Tensor, th.Tensor]] = None
                      ) -> list[th.Tensor]:
         """A plain MLP's forward pass for every learner at once (batched matrix products): the output of every
         layer, the input first and the Q-values ``(T, N, A)`` last (the backward pass reads them). ``x``: a tensor
-        ``(T, N, D)`` or :class:`Indicators`; ``first_table``: their first layer's rows already made
-        (:meth:`Indicators.table`) and each learner's block in them."""
-        params = self._unflatten(flat)
+        ``(T, N, D)``, or :class:`Indicators` with ``first``, the learners' first layers as rows
+        (:meth:`_first_rows`), and then ``flat`` holds the rest of each learner's row (:meth:`_unflatten` ``rest``)."""
+        params = self._unflatten(flat, rest=isinstance(x, Indicators))
         outputs = [x]
         for kind, item in self._layers:
             if kind == "linear":
-                weight, bias = params[item + ".weight"], params[item + ".bias"]
+                bias = params[item + ".bias"]
                 if isinstance(x, Indicators):  # one-hot inputs: sums of the weights' columns
-                    x = x.linear(weight, bias, *(first_table or (None, None)))
+                    x = x.linear(*first, bias)
                 else:
-                    x = th.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
+                    x = th.baddbmm(bias.unsqueeze(1), x, params[item + ".weight"].transpose(1, 2))
             elif self._relu_mlp:  # in place: the backward pass reads only the activated output
                 x = th.relu_(x)
             else:
@@ -514,33 +567,30 @@ class StackedDQN:
 
     def _mlp_backward(self, flat: th.Tensor, outputs: list[th.Tensor], grad_q: th.Tensor,
                       rows: Optional[slice] = None) -> th.Tensor:
-        """The gradient ``(T, P)`` of a loss with respect to the flat parameters of a ReLU MLP, from the gradient
-        ``grad_q`` ``(T, B, A)`` with respect to its Q-values at the inputs ``rows`` of ``outputs`` (a
-        :meth:`_mlp_forward` pass; the first ``B`` by default): backpropagation written out, a few batched matrix
-        products."""
-        params = self._unflatten(flat)
+        """The gradient ``(T, P)`` of a loss with respect to the learners' rows (:meth:`_layout`) of a ReLU MLP, from
+        the gradient ``grad_q`` ``(T, B, A)`` with respect to its Q-values at the inputs ``rows`` of ``outputs`` (a
+        :meth:`_mlp_forward` pass over ``flat``; the first ``B`` by default): backpropagation written out, a few
+        batched matrix products; one-hot inputs (:class:`Indicators`) add each sample's gradient to the rows of its
+        set places."""
+        params = self._unflatten(flat, rest=isinstance(outputs[0], Indicators))
         n = slice(0, grad_q.shape[1]) if rows is None else rows
-        grads: dict[str, th.Tensor] = {}
+        out = th.zeros((len(grad_q), self._row_size), dtype=grad_q.dtype, device=grad_q.device)
+        grads = self._unflatten(out)
         grad = grad_q  # with respect to the output of the layer being undone
         for i in range(len(self._layers) - 1, -1, -1):
             kind, item = self._layers[i]
             if kind == "linear":
                 layer_input = outputs[i][:, n]
-                layer_input = layer_input.dense() if isinstance(layer_input, Indicators) else layer_input
-                grads[item + ".weight"] = th.bmm(grad.transpose(1, 2), layer_input)
-                grads[item + ".bias"] = grad.sum(dim=1)
+                if isinstance(layer_input, Indicators):
+                    layer_input.add_outer(grad, *self._first_rows(out, np.arange(len(out))))
+                else:
+                    grads[item + ".weight"].copy_(th.bmm(grad.transpose(1, 2), layer_input))
+                grads[item + ".bias"].copy_(grad.sum(dim=1))
                 if i > 0:
                     grad = th.bmm(grad, params[item + ".weight"])
             else:  # ReLU: the gradient passes where the output is positive
                 grad = grad * (outputs[i + 1][:, n] > 0)
-        return th.cat([grads[name].reshape(len(flat), -1) for name in self._names], dim=1)
-
-    def _target_table(self) -> th.Tensor:
-        """The first layer of every learner's target network as :meth:`Indicators.table` rows, made again only when a
-        target network changes (every ``target_update_interval`` ticks): one transposition less per update."""
-        if self._target_rows is None:
-            self._target_rows = Indicators.table(self._unflatten(self.target)[self._layers[0][1] + ".weight"])
-        return self._target_rows
+        return out
 
     def _grow(self, capacity: int) -> None:
         def extend(old: th.Tensor) -> th.Tensor:
@@ -549,7 +599,6 @@ class StackedDQN:
             return new
 
         self.params, self.target = extend(self.params), extend(self.target)
-        self._target_rows = None
         self._views.clear()
         self.exp_avg, self.exp_avg_sq = extend(self.exp_avg), extend(self.exp_avg_sq)
         steps = th.zeros(capacity, device=self.device)
@@ -567,10 +616,9 @@ class StackedDQN:
             if self.seed is not None:
                 th.manual_seed(self.seed + goal)
             fresh = self._make_policy().q_net
-        flat = th.cat([value.detach().reshape(-1) for _, value in fresh.named_parameters()])
+        flat = self._stored(th.cat([value.detach().reshape(1, -1) for _, value in fresh.named_parameters()], dim=1))[0]
         self.params[goal] = flat
         self.target[goal] = flat
-        self._target_rows = None
         self.exp_avg[goal] = 0.0
         self.exp_avg_sq[goal] = 0.0
         self.adam_steps[goal] = 0
@@ -741,7 +789,6 @@ class StackedDQN:
         if due_targets.any():
             index = th.as_tensor(np.flatnonzero(due_targets), device=self.device)
             self.target[index] = self.params[index]
-            self._target_rows = None
 
     def bounded(self, goals: np.ndarray, acting: np.ndarray) -> np.ndarray:
         """The sub-goals of ``goals`` (due for an update) that this round updates, at most ``max_updates``: those
@@ -779,7 +826,12 @@ class StackedDQN:
         reps = len(plan) if same else 1
         learners = len(goals) // reps
         index = self._rows(goals[:learners])
-        params = self._take(self.params, index)
+        first = None  # with the replay's kept places: the first layers read in place as rows, the rest gathered
+        if self._relu_mlp and batch.encoded_observations is not None:
+            first, rest = self._first_rows(self.params, goals[:learners]), slice(self._starts[1], None)
+            params = self._take(self.params[:, rest], index)
+        else:
+            params = self._take(self.params, index)
 
         def per_learner(a: np.ndarray) -> np.ndarray:  # (reps * learners, m, ...) in plan order -> (learners, reps * m, ...)
             if reps == 1:
@@ -803,7 +855,7 @@ class StackedDQN:
             else:
                 x = np.concatenate([per_learner(self._crop(batch.observations)), per_learner(self._crop(next_obs))], axis=1)
                 inputs = self._mlp_input(self._tensor(x, cropped=True))
-            outputs = self._mlp_forward(params, inputs)
+            outputs = self._mlp_forward(params, inputs, first)
             q_s = per_round(outputs[-1][:, : reps * n])
             q, next_q_online = q_s.gather(-1, actions)[..., 0], per_round(outputs[-1][:, reps * n :])
         else:
@@ -813,11 +865,11 @@ class StackedDQN:
         with th.no_grad():
             if self._relu_mlp:  # the closing states as the online pass read them (converted once)
                 closing = outputs[0][:, reps * n :]
-                table = None  # the target networks' first layer as rows to sum, kept until they change
-                if isinstance(closing, Indicators):
-                    table = (self._target_table(), th.as_tensor(goals[:learners], device=self.device))
+                target = self.target
+                if first is not None:
+                    first, target = self._first_rows(self.target, goals[:learners]), self.target[:, rest]
                 # (T, B or 2B, A): the closing states of the own returns, and of the behaviour's with the lower bound
-                next_q_target = per_round(self._mlp_forward(self._take(self.target, index), closing, table)[-1])
+                next_q_target = per_round(self._mlp_forward(self._take(target, index), closing, first)[-1])
             else:
                 next_obs_t = self._tensor(next_obs)
                 next_q_target = self._vq(self._take(self.target, index), next_obs_t)
@@ -899,10 +951,11 @@ class StackedDQN:
         return {
             "format": "sb3_hhp.StackedDQN",
             "names": list(self._names),
-            "params": self.params[:n].clone(),
-            "target": self.target[:n].clone(),
-            "exp_avg": self.exp_avg[:n].clone(),
-            "exp_avg_sq": self.exp_avg_sq[:n].clone(),
+            # SB3's order (:meth:`_canonical`), whatever the layout kept in memory
+            "params": self._canonical(self.params[:n]),
+            "target": self._canonical(self.target[:n]),
+            "exp_avg": self._canonical(self.exp_avg[:n]),
+            "exp_avg_sq": self._canonical(self.exp_avg_sq[:n]),
             "adam_steps": self.adam_steps[:n].clone(),
             **self._counters(),
         }
@@ -938,12 +991,11 @@ class StackedDQN:
         for key in state["goal_keys"]:
             self.add(key)
         n = len(self)
-        if list(state["names"]) != self._names or state["params"].shape[1] != self.params.shape[1]:
+        if list(state["names"]) != self._names or state["params"].shape[1] != sum(self._numels):
             raise ValueError("The saved sub-goal learners have another network than subpolicy_kwargs builds: load the "
                              "model with the subpolicy_kwargs it was trained with")
-        self.params[:n], self.target[:n] = state["params"].to(self.device), state["target"].to(self.device)
-        self._target_rows = None
-        self.exp_avg[:n], self.exp_avg_sq[:n] = state["exp_avg"].to(self.device), state["exp_avg_sq"].to(self.device)
+        self.params[:n], self.target[:n] = self._stored(state["params"]), self._stored(state["target"])
+        self.exp_avg[:n], self.exp_avg_sq[:n] = self._stored(state["exp_avg"]), self._stored(state["exp_avg_sq"])
         self.adam_steps[:n] = state["adam_steps"]
         self._load_counters(state)
 
