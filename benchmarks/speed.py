@@ -13,9 +13,11 @@ machine drifts); then a profiled continuation of HhP (where the time goes)::
 
 ``late``: a saved run's model (e.g. the benchmark runner's DoorKey-8x8 run at 300,000 steps) trained on for
 ``--profile-steps`` more steps, timed then profiled, against flat SB3 DQN timed as in ``ratio`` over the same
-number of steps: the speed late in a run, when sub-goals have accumulated and episodes are short::
+number of steps: the speed late in a run, when sub-goals have accumulated and episodes are short; ``--replay``
+(a checkpoint's ``replay.pkl``) fills the learners' replays as the run had them (else they start empty)::
 
     python benchmarks/speed.py late --model RUN/MiniGrid-DoorKey-8x8-v0.zip --n-envs 8
+    python benchmarks/speed.py late --env MiniGrid-KeyCorridorS4R3-v0 --n-envs 8 --model CKPT/model.zip --replay CKPT/replay.pkl
 
 ``ab``: two settings of the sub-goal learners (``--learners-a``, ``--learners-b``, JSON attributes, e.g.
 ``{"grouped_rounds": true}``; ``{"keep_encoded": false}``: the replay keeps no places of one-hot indicators) trained
@@ -57,6 +59,11 @@ time unprofiled beside it::
 
     python benchmarks/speed.py call --env MiniGrid-DoorKey-8x8-v0 --n-envs 8 --seed 1 --start 25000
 
+or from a run's checkpoint (``--model``, ``--replay``) instead of a state trained for it; with ``PYTHONPATH`` set to
+another checkout (``git worktree add``) the same command times that code from the same state::
+
+    python benchmarks/speed.py call --env MiniGrid-KeyCorridorS4R3-v0 --n-envs 8 --model CKPT/model.zip --replay CKPT/replay.pkl
+
 With ``--call-ab``, ``--learners-a`` and ``--learners-b`` (as ``ab``) timed too, in alternating blocks of 25 calls::
 
     python benchmarks/speed.py call --env MiniGrid-KeyCorridorS4R3-v0 --n-envs 8 --seed 100 --start 60000 --repeats 6 \
@@ -88,6 +95,7 @@ from stable_baselines3 import DQN
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
+import sb3_hhp
 from sb3_hhp import HhP
 from sb3_hhp.extras import import_extra
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env
@@ -206,12 +214,21 @@ def write_profile(profiler: cProfile.Profile, path: pathlib.Path, title: str) ->
         stats.sort_stats("tottime").print_stats(25)
 
 
+def saved_run(args: argparse.Namespace) -> HhP:
+    """The saved model ``--model`` on fresh envs, its replays filled from ``--replay`` when given; no more questions
+    (a run's budget is spent by its end)."""
+    hhp = HhP.load(args.model, env=make_envs(args.env, args.n_envs, args.seed), device="cpu")
+    if args.replay:
+        hhp.load_replay_buffer(args.replay)
+    hhp.oracle = None
+    return hhp
+
+
 def late(args: argparse.Namespace) -> dict[str, Any]:
     if not args.model:
         raise SystemExit("late needs --model: a saved HhP model (e.g. a benchmark run's model zip)")
     entry, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
-    hhp = HhP.load(args.model, env=make_envs(args.env, args.n_envs, args.seed), device="cpu")
-    hhp.oracle = None  # no more questions: a run's budget is spent by its end
+    hhp = saved_run(args)
     start_steps = hhp.num_timesteps
     hhp_fps = timed_steps(hhp, args.profile_steps)
     profiler = cProfile.Profile()
@@ -223,7 +240,8 @@ def late(args: argparse.Namespace) -> dict[str, Any]:
                   f"{args.n_envs} envs, {len(hhp.subgoals)} sub-goals")
     dqn, learning = flat_dqn(args, kwargs)
     dqn_fps = timed_window(dqn, args.start, args.start + args.profile_steps)
-    return dict(env=args.env, model=args.model, from_step=start_steps, steps=args.profile_steps, n_envs=args.n_envs,
+    return dict(env=args.env, model=args.model, replay=args.replay, code=str(pathlib.Path(sb3_hhp.__file__).parent),
+                from_step=start_steps, steps=args.profile_steps, n_envs=args.n_envs,
                 hhp_fps=round(hhp_fps, 1), dqn_fps=round(dqn_fps, 1), ratio=round(hhp_fps / dqn_fps, 3),
                 num_subgoals=len(hhp.subgoals), dqn_learning=learning)
 
@@ -326,7 +344,7 @@ def learner_call(args: argparse.Namespace) -> dict[str, Any]:
     from torch.profiler import ProfilerActivity, profile
 
     _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
-    hhp, _ = snapshot(args, kwargs, "hhp_call_")
+    hhp = saved_run(args) if args.model else snapshot(args, kwargs, "hhp_call_")[0]
     learners = hhp.subpolicies  # the state is timed once: no need to load the saved copy back
     goals = np.arange(min(len(learners), learners.max_updates or len(learners)))
     plan = [goals] * max(1, args.n_envs // learners.train_freq)  # the rounds due at one step of the envs
@@ -356,7 +374,8 @@ def learner_call(args: argparse.Namespace) -> dict[str, Any]:
     torch_ms = sum(event.self_cpu_time_total for event in events) / 1000 / calls
     products_ms = sum(event.self_cpu_time_total for event in events if event.key in ("aten::baddbmm", "aten::bmm")) / 1000 / calls
     top = sorted(events, key=lambda event: -event.self_cpu_time_total)[:12]
-    return dict(env=args.env, seed=args.seed, n_envs=args.n_envs, snapshot_steps=hhp.num_timesteps,
+    return dict(env=args.env, seed=args.seed, n_envs=args.n_envs, model=args.model, replay=args.replay,
+                code=str(pathlib.Path(sb3_hhp.__file__).parent), snapshot_steps=hhp.num_timesteps,
                 snapshot_subgoals=len(hhp.subgoals), learners_per_round=len(goals), rounds=len(plan),
                 call_ms=round(1000 * seconds, 3), profiled_call_ms=round(profiled_ms, 3), products_ms=round(products_ms, 3),
                 other_torch_ms=round(torch_ms - products_ms, 3), outside_torch_ms=round(profiled_ms - torch_ms, 3),
@@ -474,7 +493,8 @@ def main() -> None:
     parser.add_argument("--counts", type=int, nargs="+", default=[2, 32], help="sub-goal counts (subgoals)")
     parser.add_argument("--k", type=int, default=2, help=argparse.SUPPRESS)
     parser.add_argument("--hhp-kwargs", default="{}", help="JSON: HhP arguments over the entry's, e.g. '{\"subgoal_learner\": \"heads\"}'")
-    parser.add_argument("--model", default=None, help="late: a saved HhP model to train on")
+    parser.add_argument("--model", default=None, help="late, call: a saved HhP model (call: instead of --start steps)")
+    parser.add_argument("--replay", default=None, help="late, call: the learners' replays saved with --model")
     parser.add_argument("--name", default=None, help="the result file's name (default: the measurement's)")
     parser.add_argument("--learners-a", default="{}", help="ab: JSON, sub-goal learner attributes of A")
     parser.add_argument("--learners-b", default='{"grouped_rounds": true}', help="ab: JSON, the same for B")

@@ -542,9 +542,10 @@ def test_the_speed_script_splits_a_learner_call() -> None:
 
     from benchmarks import speed
 
-    result = speed.learner_call(argparse.Namespace(env="MiniGrid-DoorKey-5x5-v0", hhp_kwargs='{"device": "cpu"}', seed=0,
-                                                   start=800, n_envs=8, repeats=2, call_ab=True,
-                                                   learners_a='{"_relu_mlp": true}', learners_b='{"_relu_mlp": false}'))
+    args = argparse.Namespace(env="MiniGrid-DoorKey-5x5-v0", hhp_kwargs='{"device": "cpu"}', seed=0, start=800, n_envs=8,
+                              repeats=2, call_ab=True, learners_a='{"_relu_mlp": true}', learners_b='{"_relu_mlp": false}',
+                              model=None, replay=None)
+    result = speed.learner_call(args)
     assert len(result["call_ms_a"]) == len(result["call_ms_b"]) == 2 and min(result["call_ms_a"] + result["call_ms_b"]) > 0
     assert result["learners_b"] == {"_relu_mlp": False} and result["median_ratio_b_to_a"] > 0
     assert result["rounds"] == 2 and 1 <= result["learners_per_round"] <= result["snapshot_subgoals"]
@@ -553,6 +554,14 @@ def test_the_speed_script_splits_a_learner_call() -> None:
     # the parts are measured apart (torch's own times, and the profiled calls' wall time less them)
     assert result["outside_torch_ms"] > 0 and result["products_ms"] < result["profiled_call_ms"]
     assert result["top_torch_ops_ms"]["aten::baddbmm"] <= result["products_ms"]
+    # from a saved run's model and replays instead (late in a run): that state's learners, their replay as saved
+    saved, folder = speed.snapshot(args, speed.entry_kwargs(args.env, args.hhp_kwargs)[1], "call_test_")
+    args.model, args.replay, args.call_ab, args.repeats = str(folder / "snapshot.zip"), str(folder / "snapshot_replay.pkl"), False, 1
+    loaded = speed.saved_run(args)
+    assert loaded.subpolicies.replay.size() == saved.subpolicies.replay.size() > 0 and loaded.oracle is None
+    result = speed.learner_call(args)
+    assert result["model"] == args.model and result["snapshot_steps"] == saved.num_timesteps
+    assert result["snapshot_subgoals"] == len(saved.subgoals) and result["call_ms"] > 0
 
 
 def test_the_evaluation_script_replays_a_runs_episodes_with_load_options(tmp_path, monkeypatch, capsys) -> None:
