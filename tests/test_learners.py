@@ -600,6 +600,15 @@ def test_a_carrying_subgoal_learns_from_empty_handed_steps_as_they_would_have_go
         SharedReplay(16, OBS, ACTIONS, equal_keys, carry_relabel=1.5)
 
 
+def rows(weight: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+    """First layers ``(T, H, size)`` as the table Indicators reads, and each learner's first row: a learner's ``size``
+    rows (its weights transposed), then a zero row."""
+    t, h, size = weight.shape
+    table = th.zeros((t, size + 1, h), dtype=weight.dtype)
+    table[:, :size] = weight.transpose(1, 2)
+    return table.view(-1, h), th.arange(t) * (size + 1)
+
+
 def test_the_places_of_set_indicators_are_the_one_hot_inputs_and_a_first_layer_reads_them_as_the_dense_product() -> None:
     """OneHotCodes.places gives, per observation, the places of the indicators encode sets in its flattened output,
     increasing, then the input size as padding up to one place per used channel of every cell; Indicators.linear is
@@ -624,7 +633,7 @@ def test_the_places_of_set_indicators_are_the_one_hot_inputs_and_a_first_layer_r
         most = int((dense > 0).sum(-1).max())
         for kept in (places, places[..., :most]):
             inputs = Indicators(th.as_tensor(kept.astype(np.int64)), size)
-            table, starts = Indicators.rows(weight)
+            table, starts = rows(weight)
             assert table.shape == (2 * (size + 1), 5) and starts.tolist() == [0, size + 1]
             th.testing.assert_close(inputs.linear(table, starts, bias), expected, rtol=1e-5, atol=1e-5)
             th.testing.assert_close(inputs[:, 2:].linear(table, starts, bias), expected[:, 2:], rtol=1e-5, atol=1e-5)

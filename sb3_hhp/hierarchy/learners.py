@@ -205,8 +205,8 @@ class Indicators:
     ``size``: :meth:`OneHotCodes.places`): what a first layer reads as sums of its weights' columns.
 
     Learner ``t``'s first layer is read as rows of a table ``(R, H)``: input ``i``'s weights in row ``starts[t] + i``
-    and zeros in row ``starts[t] + size``, where the padding points (:meth:`rows` makes such a table; the stacked
-    learners keep their first layers so, :meth:`StackedDQN._layout`)."""
+    and zeros in row ``starts[t] + size``, where the padding points (the stacked learners keep their first layers so,
+    :meth:`StackedDQN._layout`)."""
 
     def __init__(self, places: th.Tensor, size: int) -> None:
         self.places, self.size = places, size
@@ -232,15 +232,6 @@ class Indicators:
         padding = table[starts + self.size].clone()
         table.index_add_(0, places.reshape(-1), spread.reshape(-1, grad.shape[-1]))
         table[starts + self.size] = padding
-
-    @staticmethod
-    def rows(weight: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """Learners' first layers ``(T, H, size)`` as a table :meth:`linear` reads and each learner's first row in it:
-        a learner's ``size`` rows, then a zero row."""
-        t, h, size = weight.shape
-        table = th.zeros((t, size + 1, h), dtype=weight.dtype, device=weight.device)
-        table[:, :size] = weight.transpose(1, 2)
-        return table.view(-1, h), th.arange(t, device=weight.device) * (size + 1)
 
 
 def _mlp_layers(q_net: th.nn.Module) -> Optional[list[tuple[str, Any]]]:
@@ -460,13 +451,12 @@ class StackedDQN:
         ``H``: every learner's first layer is then rows of one ``(-1, H)`` view of a stacked tensor, which
         :class:`Indicators` sums and adds gradients to in place (no copy of the weights a step). The zeros get no
         gradient, so Adam leaves them zero. Saved models hold SB3's order (:meth:`_canonical`)."""
-        self._first_as_rows = self._keeps_encoded
         self._numels = [int(np.prod(shape)) for shape in self._shapes]
         self._starts, position = [], 0
         for i, numel in enumerate(self._numels):
             self._starts.append(position)
-            position += numel + (self._shapes[0][0] if i == 0 and self._first_as_rows else 0)
-        width = self._shapes[0][0] if self._first_as_rows else 1
+            position += numel + (self._shapes[0][0] if i == 0 and self._keeps_encoded else 0)
+        width = self._shapes[0][0] if self._keeps_encoded else 1
         self._row_size = -(-position // width) * width
         self._table_rows = self._row_size // width  # a learner's rows in the (-1, H) view
 
@@ -487,7 +477,7 @@ class StackedDQN:
             if i == 0 and rest:
                 continue
             piece = flat[..., start - shift : start - shift + numel]
-            if i == 0 and self._first_as_rows:
+            if i == 0 and self._keeps_encoded:
                 views[name] = piece.view(*lead, shape[1], shape[0]).transpose(-1, -2)
             else:
                 views[name] = piece.view(*lead, *shape)
@@ -502,8 +492,6 @@ class StackedDQN:
 
     def _stored(self, canonical: th.Tensor) -> th.Tensor:
         """The inverse of :meth:`_canonical`: rows of SB3's order as rows of the stacked layout."""
-        if canonical.shape[-1] != sum(self._numels):
-            raise ValueError(f"rows of {canonical.shape[-1]} parameters, the learners have {sum(self._numels)}")
         rows = th.zeros((len(canonical), self._row_size), dtype=canonical.dtype, device=self.device)
         views = self._unflatten(rows)
         offsets = np.cumsum([0, *self._numels])
@@ -844,7 +832,7 @@ class StackedDQN:
             return t.reshape(learners, reps, -1, *t.shape[2:]).transpose(0, 1).reshape(reps * learners, -1, *t.shape[2:])
 
         if self._relu_mlp:  # one forward pass of the online networks over s and the closing states, backward by hand
-            if batch.encoded_observations is not None:  # the places of the set indicators, kept by the replay
+            if first is not None:  # the places of the set indicators, kept by the replay
                 closing = batch.encoded_next_observations
                 if lower_bound:
                     closing = np.concatenate([closing, batch.encoded_behaviour_next_observations], axis=1)

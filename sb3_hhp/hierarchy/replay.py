@@ -374,9 +374,9 @@ class SharedReplay:
             if lower_bound:
                 batch.behaviour_returns[t, at], batch.behaviour_dones[t, at] = reward, terminal
                 batch.behaviour_next_observations[t, at], batch.behaviour_discounts[t, at] = next_obs[usable], self.gamma
-            if batch.encoded_observations is not None:  # the changed states, encoded as the stored ones are
-                encoded_next = self._encode(next_obs[usable])
-                batch.encoded_observations[t, at], batch.encoded_next_observations[t, at] = self._encode(obs[usable]), encoded_next
+            if batch.encoded_observations is not None:  # the changed states, encoded as the stored ones are (one call)
+                encoded, encoded_next = self._encode(np.stack([obs[usable], next_obs[usable]]))
+                batch.encoded_observations[t, at], batch.encoded_next_observations[t, at] = encoded, encoded_next
                 if lower_bound:
                     batch.encoded_behaviour_next_observations[t, at] = encoded_next
 
