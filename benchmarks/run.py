@@ -32,7 +32,8 @@ state) and go on from them the same way. Killing the runner stops its workers an
 Output folder (``--out``, default ``benchmarks/results/<name>``)::
 
     results.csv        one row per env x variant x seed
-    runs/<run>.json    each run's summary (sb3_hhp.train's summary for HhP)
+    runs/<run>.json    each run's summary (sb3_hhp.train's summary for HhP), with ``code``: the commit each part
+                       of the run was trained with and the package files that differed from it
     curves/<run>.csv   success rate and mean return at each periodic evaluation
     logs/<run>/        each run's log folder, logs/<run>.log its output
 
@@ -105,6 +106,10 @@ KEY_COLUMNS = ("env", "variant", "seed", "steps")
 BASELINE_RUNNER_KEYS = ("n_envs", "policy", "vec_rnd")
 #: periodic evaluations per run when the sweep does not set eval_freq
 DEFAULT_CURVE_POINTS = 20
+#: what a run's log folder records of the code each of its parts ran (:func:`code_version`), in order
+CODE_FILE = "code.json"
+#: the folders whose files make a run's result (a change there outside a commit is named in ``code``)
+CODE_FOLDERS = ("sb3_hhp", "benchmarks", "hyperparams", "setup.cfg", "constraints.txt")
 
 
 class SweepError(ValueError):
@@ -528,6 +533,39 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
     }
 
 
+def code_version(root: Optional[Path] = None) -> Optional[dict[str, Any]]:
+    """The code a run trains with: ``commit`` (the HEAD of the checkout ``root``, default this one) and ``changed``,
+    the tracked files of :data:`CODE_FOLDERS` that differ from it (an uncommitted change a result would otherwise
+    hide); None outside a git checkout."""
+    root = Path(__file__).resolve().parents[1] if root is None else Path(root)
+
+    def git(*words: str) -> Optional[str]:
+        try:
+            done = subprocess.run(["git", "-C", str(root), *words], capture_output=True, text=True, timeout=30)
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        return done.stdout if done.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    if not commit:
+        return None
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", *CODE_FOLDERS) or ""
+    return {"commit": commit.strip(), "changed": sorted(line[3:] for line in changed.splitlines() if line.strip())}
+
+
+def _record_code(log_folder: Path) -> list[dict[str, Any]]:
+    """This part's :func:`code_version` added to the run's record in ``log_folder`` (one entry a part, with the
+    step count its checkpoint resumes from): the record."""
+    path = log_folder / CODE_FILE
+    parts = json.loads(path.read_text()) if path.is_file() else []
+    resume = latest_checkpoint(log_folder)
+    part = {"from_step": 0 if resume is None else int(json.loads((resume / CHECKPOINT_FILE).read_text()).get("timesteps", 0)),
+            **(code_version() or {"commit": None, "changed": []})}
+    parts.append(part)
+    path.write_text(json.dumps(parts, indent=2) + "\n")
+    return parts
+
+
 def run_experiment(experiment: Experiment, sweep: Sweep, out: Union[str, Path]) -> dict[str, Any]:
     """Train and evaluate one experiment; its output goes to ``logs/<run>.log``.
 
@@ -542,6 +580,7 @@ def run_experiment(experiment: Experiment, sweep: Sweep, out: Union[str, Path]) 
     if not resumes:
         shutil.rmtree(log_folder, ignore_errors=True)  # a failed earlier attempt's files
     log_folder.mkdir(parents=True, exist_ok=True)
+    code = _record_code(log_folder)
     start = time.perf_counter()
     with open(out / "logs" / f"{experiment.name}.log", "a" if resumes else "w") as log_file:
         if sweep.is_hhp(experiment.variant):
@@ -550,6 +589,8 @@ def run_experiment(experiment: Experiment, sweep: Sweep, out: Union[str, Path]) 
             with contextlib.redirect_stdout(log_file), contextlib.redirect_stderr(log_file):
                 result = _run_baseline(experiment, sweep, out)
     summary = result["summary"]
+    summary["code"] = code  # the commit of each part, in the run's summary next to its figures
+    Path(result["summary_path"]).write_text(json.dumps(summary, indent=2) + "\n")
     wall_seconds = time.perf_counter() - start + earlier_parts_seconds(summary)
     curve = _curve_from_evaluations(attempt_evaluations(log_folder), out / "curves" / f"{experiment.name}.csv")
     return {

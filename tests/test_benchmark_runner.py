@@ -1,6 +1,7 @@
 """Tests of the benchmark runner (python -m benchmarks.run) and its report (benchmarks/report.py), without training."""
 
 import contextlib
+import json
 import os
 import signal
 import subprocess
@@ -23,6 +24,7 @@ from benchmarks.run import (
     _curve_from_evaluations,
     _run_hhp,
     attempt_evaluations,
+    code_version,
     earlier_parts_seconds,
     latest_checkpoint,
     load_sweep,
@@ -415,6 +417,12 @@ def test_a_stopped_baseline_run_goes_on_from_its_last_checkpoint(tmp_path, varia
     assert summary["resumed_at"] == 256
     assert summary["train_seconds_all_parts"] > summary["train_seconds"] > 0
     assert (log / "part_256" / "resumed.json").is_file()
+    # each part's code: the commit it ran (this checkout's HEAD) and the package files changed from it
+    head = subprocess.run(["git", "-C", str(Path(__file__).resolve().parents[1]), "rev-parse", "HEAD"],
+                          capture_output=True, text=True).stdout.strip()
+    parts = json.loads((out / row["summary"]).read_text())["code"]
+    assert [part["from_step"] for part in parts] == [0, 256]
+    assert all(part["commit"] == (head or None) and isinstance(part["changed"], list) for part in parts)
     curve = pd.read_csv(out / row["curve"])
     assert curve["steps"].tolist() == [256, 512]  # one point from each part
     checkpoint = read_checkpoint(str(log))
@@ -425,6 +433,27 @@ def test_a_stopped_baseline_run_goes_on_from_its_last_checkpoint(tmp_path, varia
         from stable_baselines3.common.save_util import load_from_pkl
 
         assert load_from_pkl(checkpoint["replay"]).size() == 512
+
+
+def test_a_run_records_the_code_it_ran(tmp_path):
+    """code_version: the checkout's commit and the tracked package files that differ from it (not untracked files, not
+    files outside the package's folders); None outside a git checkout."""
+    def git(*words: str) -> str:
+        return subprocess.run(["git", "-C", str(tmp_path), *words], capture_output=True, text=True, check=True).stdout
+
+    assert code_version(tmp_path) is None
+    git("init", "-q")
+    (tmp_path / "sb3_hhp").mkdir()
+    (tmp_path / "sb3_hhp" / "a.py").write_text("x = 1\n")
+    (tmp_path / "notes.txt").write_text("notes\n")
+    git("add", "sb3_hhp/a.py", "notes.txt")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "first")
+    head = git("rev-parse", "HEAD").strip()
+    assert code_version(tmp_path) == {"commit": head, "changed": []}
+    (tmp_path / "sb3_hhp" / "a.py").write_text("x = 2\n")
+    (tmp_path / "sb3_hhp" / "new.py").write_text("y = 1\n")
+    (tmp_path / "notes.txt").write_text("more notes\n")
+    assert code_version(tmp_path) == {"commit": head, "changed": ["sb3_hhp/a.py"]}
 
 
 def sleeping_row(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, Any]:
