@@ -108,8 +108,9 @@ BASELINE_RUNNER_KEYS = ("n_envs", "policy", "vec_rnd")
 DEFAULT_CURVE_POINTS = 20
 #: what a run's log folder records of the code each of its parts ran (:func:`code_version`), in order
 CODE_FILE = "code.json"
-#: the folders whose files make a run's result (a change there outside a commit is named in ``code``)
-CODE_FOLDERS = ("sb3_hhp", "benchmarks", "hyperparams", "setup.cfg", "constraints.txt")
+#: the files that make a run's result, as git pathspecs (a change there outside a commit is named in ``code``); the
+#: runs' own results are not among them
+CODE_FOLDERS = ("sb3_hhp", "benchmarks", "hyperparams", "setup.cfg", "constraints.txt", ":(exclude)benchmarks/results")
 
 
 class SweepError(ValueError):

@@ -437,7 +437,7 @@ def test_a_stopped_baseline_run_goes_on_from_its_last_checkpoint(tmp_path, varia
 
 def test_a_run_records_the_code_it_ran(tmp_path):
     """code_version: the checkout's commit and the tracked package files that differ from it (not untracked files, not
-    files outside the package's folders); None outside a git checkout."""
+    files outside the package's folders, not the runs' results); None outside a git checkout."""
     def git(*words: str) -> str:
         return subprocess.run(["git", "-C", str(tmp_path), *words], capture_output=True, text=True, check=True).stdout
 
@@ -446,13 +446,16 @@ def test_a_run_records_the_code_it_ran(tmp_path):
     (tmp_path / "sb3_hhp").mkdir()
     (tmp_path / "sb3_hhp" / "a.py").write_text("x = 1\n")
     (tmp_path / "notes.txt").write_text("notes\n")
-    git("add", "sb3_hhp/a.py", "notes.txt")
+    (tmp_path / "benchmarks" / "results").mkdir(parents=True)
+    (tmp_path / "benchmarks" / "results" / "results.csv").write_text("env\n")
+    git("add", "sb3_hhp/a.py", "notes.txt", "benchmarks/results/results.csv")
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "first")
     head = git("rev-parse", "HEAD").strip()
     assert code_version(tmp_path) == {"commit": head, "changed": []}
     (tmp_path / "sb3_hhp" / "a.py").write_text("x = 2\n")
     (tmp_path / "sb3_hhp" / "new.py").write_text("y = 1\n")
     (tmp_path / "notes.txt").write_text("more notes\n")
+    (tmp_path / "benchmarks" / "results" / "results.csv").write_text("env,seed\n")  # a result, not code
     assert code_version(tmp_path) == {"commit": head, "changed": ["sb3_hhp/a.py"]}
 
 
