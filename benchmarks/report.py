@@ -230,9 +230,10 @@ def plot_curves(results: pd.DataFrame, folder: Path, unfinished: Optional[pd.Dat
     return written
 
 
-def greedy_rows(results: pd.DataFrame, folder: Path) -> list[tuple[int, str, str]]:
+def greedy_rows(results: pd.DataFrame, folder: Path, key: str = "break_cycles") -> list[tuple[int, str, str]]:
     """The HhP runs whose deterministic figure is plain greedy: their summary (``runs/<run>.json``) predates
-    ``break_cycles`` or says it was off. Rows of other variants, or without a summary, are not named.
+    ``break_cycles`` or says it was off (``key="stochastic_breaks_cycles"``: whose stochastic figure is plain
+    epsilon-greedy). Rows of other variants, or without a summary, are not named.
 
     :return: per such run: its row's index in ``results``, its name in the tables, its run name (its log folder's)
     """
@@ -241,7 +242,7 @@ def greedy_rows(results: pd.DataFrame, folder: Path) -> list[tuple[int, str, str
         summary = getattr(row, "summary", None)
         if not str(row.variant).startswith("hhp") or not isinstance(summary, str) or not (folder / summary).is_file():
             continue
-        if not json.loads((folder / summary).read_text()).get("break_cycles", False):
+        if not json.loads((folder / summary).read_text()).get(key, False):
             run = Experiment(row.env, row.variant, int(row.seed), int(row.steps)).name
             named.append((index, f"{row.env} {variant_name(str(row.variant))} seed {int(row.seed)}", run))
     return named
@@ -280,9 +281,10 @@ def reevaluations(folder: Path) -> list[dict]:
 
 def break_cycles_note(results: pd.DataFrame, folder: Path) -> tuple[pd.DataFrame, str]:
     """The rows with the deterministic figures of plain greedy HhP runs replaced by their :func:`reevaluations` on the
-    same episodes (as many, the same seeds), and the note under the table that says which and what they were."""
-    greedy = greedy_rows(results, folder)
-    if not greedy:
+    same episodes (as many, the same seeds), and the note under the table that says which and what they were, and
+    which runs' stochastic figures are plain epsilon-greedy."""
+    greedy, epsilon_greedy = greedy_rows(results, folder), greedy_rows(results, folder, "stochastic_breaks_cycles")
+    if not greedy and not epsilon_greedy:
         return results, ""
     again = reevaluations(folder)
     results = results.copy()
@@ -305,6 +307,10 @@ def break_cycles_note(results: pd.DataFrame, folder: Path) -> tuple[pd.DataFrame
     if kept:
         note += (" These runs were evaluated plain greedy only (their models not evaluated again), and the table shows "
                  "that: " + "; ".join(kept) + ".")
+    if epsilon_greedy:
+        note += (" The stochastic policy breaks its cycles too (epsilon-greedy around them); these runs' stochastic "
+                 "figures are plain epsilon-greedy, evaluated before it did: "
+                 + "; ".join(name for _, name, _ in epsilon_greedy) + ".")
     return results, note + "\n"
 
 

@@ -277,7 +277,7 @@ def test_report_names_hhp_runs_evaluated_plain_greedy(tmp_path):
     csv_path = synthetic_results(tmp_path)
     results = pd.read_csv(csv_path)
     (tmp_path / "runs").mkdir()
-    summaries = {0: {"env": "x"}, 1: {"break_cycles": True}}
+    summaries = {0: {"env": "x"}, 1: {"break_cycles": True, "stochastic_breaks_cycles": True}}
     results["summary"] = None
     for index, row in results.iterrows():
         path = f"runs/{row.variant}_s{row.seed}.json"
@@ -290,6 +290,13 @@ def test_report_names_hhp_runs_evaluated_plain_greedy(tmp_path):
     assert "MiniGrid-DoorKey-8x8-v0 HhP seed 0" in text
     assert "HhP seed 1" not in text and "PPO seed" not in text  # breaking cycles; a baseline has no such policy
     assert "| HhP | 2 | 1,000 | 0.95 ± 0.07 |" in table  # the runner's figures, as written
+    # seed 0's stochastic figure is plain epsilon-greedy, and named so (its summary predates the key)
+    assert "stochastic figures are plain epsilon-greedy, evaluated before it did: MiniGrid-DoorKey-8x8-v0 HhP seed 0." in text
+    # a run whose deterministic policy broke cycles but whose stochastic one did not is named for the latter only
+    (tmp_path / "runs" / "hhp_s1.json").write_text(json.dumps({"break_cycles": True}))
+    text = report.report(csv_path)[1].read_text()
+    assert "evaluated before it did: MiniGrid-DoorKey-8x8-v0 HhP seed 0; MiniGrid-DoorKey-8x8-v0 HhP seed 1." in text
+    (tmp_path / "runs" / "hhp_s1.json").write_text(json.dumps(summaries[1]))
 
     # evaluate.py's figures for seed 0 on the runner's episodes replace its plain greedy one; those with cycles not
     # broken, on other episodes, or of other runs do not
@@ -308,7 +315,7 @@ def test_report_names_hhp_runs_evaluated_plain_greedy(tmp_path):
     assert "| HhP | 2 | 1,000 | 0.98 ± 0.03 |" in table  # 0.96 and 1.00
     assert "| PPO | 2 | 1,000 | 0.30 ± 0.14 |" in table
     assert "MiniGrid-DoorKey-8x8-v0 HhP seed 0 (0.96; plain greedy 0.90; `c_variants.json`)" in text
-    assert "plain greedy only" not in text
+    assert "plain greedy only" not in text and "epsilon-greedy, evaluated before it did: MiniGrid-DoorKey-8x8-v0 HhP seed 0." in text
     assert pd.read_csv(csv_path)["success_det"].tolist() == [0.2, 0.4, 0.9, 1.0]  # the results file is left as written
 
 
