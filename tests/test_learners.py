@@ -677,8 +677,10 @@ def test_one_hot_updates_read_the_kept_places_and_learn_as_the_dense_input_does(
     # the kept places' learners keep each first layer as rows (plus zeros): compared in SB3's order, as saved
     assert kept.params.shape[1] > dense.params.shape[1]
     kept_state, dense_state = kept.state_dict(), dense.state_dict()
-    th.testing.assert_close(kept_state["params"], dense_state["params"], rtol=1e-4, atol=1e-6)
-    th.testing.assert_close(kept_state["target"], dense_state["target"], rtol=1e-4, atol=1e-6)
+    # the two sum the first layer in different orders: after 100-odd Adam steps at lr 0.01 a weight near zero differs
+    # by up to ~2e-6 on some CPUs (AVX-512 machines), so the absolute tolerance is 1e-5, far below one step's size
+    th.testing.assert_close(kept_state["params"], dense_state["params"], rtol=1e-4, atol=1e-5)
+    th.testing.assert_close(kept_state["target"], dense_state["target"], rtol=1e-4, atol=1e-5)
     th.testing.assert_close(kept_state["exp_avg_sq"], dense_state["exp_avg_sq"], rtol=1e-3, atol=1e-10)
     np.testing.assert_allclose(kept_losses, dense_losses, rtol=1e-4)
     assert not th.equal(kept.params[0], kept.target[0])
@@ -688,7 +690,7 @@ def test_one_hot_updates_read_the_kept_places_and_learn_as_the_dense_input_does(
     assert not rows[:, size].any() and not kept.params[:3, kept._starts[-1] + kept._numels[-1]:].any()
     for goal in range(3):
         for name, value in kept.policy(goal).q_net.state_dict().items():
-            th.testing.assert_close(value, dense.policy(goal).q_net.state_dict()[name], rtol=1e-4, atol=1e-6)
+            th.testing.assert_close(value, dense.policy(goal).q_net.state_dict()[name], rtol=1e-4, atol=1e-5)
 
 
 def test_encoded_copies_kept_by_the_replay_match_every_drawn_state_counterfactuals_included() -> None:
