@@ -110,7 +110,7 @@ DEFAULT_CURVE_POINTS = 20
 CODE_FILE = "code.json"
 #: the files that make a run's result, as git pathspecs (a change there outside a commit is named in ``code``); the
 #: runs' own results are not among them
-CODE_FOLDERS = ("sb3_hhp", "benchmarks", "hyperparams", "setup.cfg", "constraints.txt", ":(exclude)benchmarks/results")
+CODE_PATHSPECS = ("sb3_hhp", "benchmarks", "hyperparams", "setup.cfg", "constraints.txt", ":(exclude)benchmarks/results")
 
 
 class SweepError(ValueError):
@@ -536,7 +536,7 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
 
 def code_version(root: Optional[Path] = None) -> Optional[dict[str, Any]]:
     """The code a run trains with: ``commit`` (the HEAD of the checkout ``root``, default this one) and ``changed``,
-    the tracked files of :data:`CODE_FOLDERS` that differ from it (an uncommitted change a result would otherwise
+    the tracked files of :data:`CODE_PATHSPECS` that differ from it (an uncommitted change a result would otherwise
     hide); None outside a git checkout."""
     root = Path(__file__).resolve().parents[1] if root is None else Path(root)
 
@@ -550,7 +550,7 @@ def code_version(root: Optional[Path] = None) -> Optional[dict[str, Any]]:
     commit = git("rev-parse", "HEAD")
     if not commit:
         return None
-    changed = git("status", "--porcelain", "--untracked-files=no", "--", *CODE_FOLDERS) or ""
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", *CODE_PATHSPECS) or ""
     return {"commit": commit.strip(), "changed": sorted(line[3:] for line in changed.splitlines() if line.strip())}
 
 
