@@ -554,12 +554,11 @@ def code_version(root: Optional[Path] = None) -> Optional[dict[str, Any]]:
     return {"commit": commit.strip(), "changed": sorted(line[3:] for line in changed.splitlines() if line.strip())}
 
 
-def _record_code(log_folder: Path) -> list[dict[str, Any]]:
+def _record_code(log_folder: Path, resume: Optional[Path]) -> list[dict[str, Any]]:
     """This part's :func:`code_version` added to the run's record in ``log_folder`` (one entry a part, with the
-    step count its checkpoint resumes from): the record."""
+    step count of the checkpoint ``resume`` it goes on from, :func:`latest_checkpoint`): the record."""
     path = log_folder / CODE_FILE
     parts = json.loads(path.read_text()) if path.is_file() else []
-    resume = latest_checkpoint(log_folder)
     part = {"from_step": 0 if resume is None else int(json.loads((resume / CHECKPOINT_FILE).read_text()).get("timesteps", 0)),
             **(code_version() or {"commit": None, "changed": []})}
     parts.append(part)
@@ -577,11 +576,12 @@ def run_experiment(experiment: Experiment, sweep: Sweep, out: Union[str, Path]) 
     """
     out = Path(out)
     log_folder = out / "logs" / experiment.name
-    resumes = latest_checkpoint(log_folder) is not None  # every variant goes on from its last checkpoint
+    resume = latest_checkpoint(log_folder)
+    resumes = resume is not None  # every variant goes on from its last checkpoint
     if not resumes:
         shutil.rmtree(log_folder, ignore_errors=True)  # a failed earlier attempt's files
     log_folder.mkdir(parents=True, exist_ok=True)
-    code = _record_code(log_folder)
+    code = _record_code(log_folder, resume)
     start = time.perf_counter()
     with open(out / "logs" / f"{experiment.name}.log", "a" if resumes else "w") as log_file:
         if sweep.is_hhp(experiment.variant):
