@@ -19,7 +19,8 @@ AMD EPYC machine of this kind, one seed at a time beside two training runs:
 ``python benchmarks/calibrate_learning_test.py --seeds 0 1 2 3 4 5 6 7 8 9 --jobs 1``
 (``benchmarks/results/learning_test_calibration_pinned.json``, 61-75 s of training each under that load; the
 calibration before the kernels were pinned, on another machine: ``learning_test_calibration.json``, every seed
-1.00 and 0.923-0.968). Alone on a machine of this kind the test takes about 30-60 s.
+1.00 and 0.923-0.968; on 16 Intel Xeon cores with torch 2.11, seeds 0-15: every seed 1.00 and 0.850-0.968, seed 0
+0.887, ``learning_test_calibration_xeon.json``). Alone on a machine of this kind the test takes about 30-60 s.
 The random policy scores success 0.60, mean return 0.354 on these seeds.
 
 ==========  ============  ===========
