@@ -183,6 +183,11 @@ def test_a_learner_view_on_ddpg_subgoals_names_the_fix() -> None:
         HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(view=3))
 
 
+def test_a_learner_overview_on_ddpg_subgoals_names_the_fix() -> None:
+    with pytest.raises(ValueError, match="overview.*DDPG.*leave overview out"):
+        HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(overview=3))
+
+
 def test_a_run_clock_on_ddpg_subgoals_names_the_fix() -> None:
     with pytest.raises(ValueError, match="exploration_run_steps.*DDPG.*leave it out"):
         HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(exploration_run_steps=1000))

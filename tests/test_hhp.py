@@ -22,7 +22,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecFrameStack, VecNorm
 from sb3_hhp import HhP
 from sb3_hhp.goals import MiniGridGoalSpace, wrap_env
 from sb3_hhp.hhp.hhp import COMPONENTS_FILE, MOVED_ARGUMENTS
-from sb3_hhp.hierarchy.learners import OneHotCodes, StackedDQN
+from sb3_hhp.hierarchy.learners import OneHotCodes, Overview, StackedDQN
 from sb3_hhp.hierarchy.options import EpisodeTrace
 from sb3_hhp.oracles import Label
 from sb3_hhp.preferences.store import PreferenceStore
@@ -618,6 +618,36 @@ def test_one_hot_learners_read_each_code_as_indicators_and_save_and_load(tmp_pat
     model.save(tmp_path / "one_hot")
     loaded = HhP.load(tmp_path / "one_hot")
     assert loaded.subgoal_learner_kwargs["one_hot"] == [11, 0, 3]
+    sequence = _rollout_observations(model, seed=3)
+    assert _predictions(loaded, sequence) == _predictions(model, sequence)
+
+
+def test_one_hot_learners_with_an_overview_read_the_view_and_the_blocks_and_save_and_load(tmp_path) -> None:
+    """subgoal_learner_kwargs view=3, overview=3, one_hot=[11, 0, 3]: the learners read the 3 x 3 cells around the
+    agent and the 3 x 3 blocks of the whole 7 x 7 canvas (each its most salient cell), 18 cells of 14 indicators; their
+    Q-values are SB3's network of the sub-goal applied to those cells encoded here; a saved model acts as the one it
+    saved."""
+    model = make_model(subgoal_learner_kwargs=dict(view=3, overview=3, one_hot=[11, 0, 3]))
+    model.learn(600)
+    learners = model.subpolicies
+    assert len(model.subgoals) > 0 and learners.n_updates.sum() > 0
+    assert learners.replay.encoded_observations is not None  # the kept places (one per used channel of each cell)
+    assert learners.replay.encoded_observations.shape[-1] == 18 * 2
+    assert learners.policy(0).q_net.q_net[0].in_features == 18 * 14
+    obs = observations()
+    cells = np.concatenate([obs[:, 2:5, 2:5].reshape(len(obs), 9, 3), Overview(model.primitive_observation_space, 3)(obs)
+                            .reshape(len(obs), 9, 3)], axis=1)
+    by_hand = np.zeros((len(obs), 18, 14), dtype=np.float32)
+    for index in np.ndindex(*cells.shape[:2]):
+        by_hand[index + (cells[index + (0,)],)] = 1.0
+        by_hand[index + (11 + cells[index + (2,)],)] = 1.0
+    for goal in range(len(model.subgoals)):
+        with th.no_grad():
+            expected = learners.policy(goal).q_net(th.as_tensor(by_hand.reshape(len(obs), 1, 18, 14), device=model.device))
+        assert th.allclose(learners.q_values(np.full(len(obs), goal), obs), expected, atol=1e-5)
+    model.save(tmp_path / "overview")
+    loaded = HhP.load(tmp_path / "overview")
+    assert loaded.subgoal_learner_kwargs["overview"] == 3
     sequence = _rollout_observations(model, seed=3)
     assert _predictions(loaded, sequence) == _predictions(model, sequence)
 

@@ -7,7 +7,7 @@ import torch as th
 from gymnasium import spaces
 from torch.nn import functional as F
 
-from sb3_hhp.hierarchy.learners import Indicators, OneHotCodes, StackedDQN
+from sb3_hhp.hierarchy.learners import Indicators, OneHotCodes, Overview, StackedDQN
 from sb3_hhp.hierarchy.replay import GoalBatch, GoalTrees, SharedReplay
 
 OBS = spaces.Box(0, 255, (3,), np.uint8)
@@ -508,6 +508,18 @@ def grid_learners(space: spaces.Box, view=None, seed: int = 0) -> StackedDQN:
     return learners
 
 
+def learn_side_by_side(learners: StackedDQN, grids: np.ndarray, plain: StackedDQN, read: np.ndarray) -> None:
+    """The same steps, sub-goals reached and updates for learners of whole grids and for a learner of what they read
+    of them: both update, and end with the same parameters."""
+    keys = ["A" if t % 5 == 4 else ("B" if t % 7 == 6 else "x") for t in range(len(grids) - 1)]
+    for t, key in enumerate(keys):
+        for learner, obs in ((learners, grids), (plain, read)):
+            learner.observe(obs[t : t + 1], np.array([t % 3]), obs[t + 1 : t + 2], [key], np.array([False]),
+                            np.array([False]), np.array([False]), np.array([t % 2]), np.array([0.1], np.float32))
+    assert learners.n_updates.sum() > 0 and learners.n_updates.tolist() == plain.n_updates.tolist()
+    th.testing.assert_close(learners.params, plain.params)
+
+
 def test_a_view_reads_only_the_central_cells_and_learns_as_a_learner_of_those_cells() -> None:
     """With view=3 the learners read the 3 x 3 central cells of a 7 x 7 grid: cells outside change nothing, cells
     inside do; and acting and learning on whole grids give what a learner of the cropped grids gives, step for step
@@ -524,13 +536,7 @@ def test_a_view_reads_only_the_central_cells_and_learns_as_a_learner_of_those_ce
     goals = np.zeros(len(grids), dtype=np.int64)
     th.testing.assert_close(viewed.q_values(goals, outside), viewed.q_values(goals, grids))
     assert not th.allclose(viewed.q_values(goals, inside), viewed.q_values(goals, grids))
-    keys = ["A" if t % 5 == 4 else ("B" if t % 7 == 6 else "x") for t in range(len(grids) - 1)]
-    for t, key in enumerate(keys):
-        for learners, obs in ((viewed, grids), (plain, crop)):
-            learners.observe(obs[t : t + 1], np.array([t % 3]), obs[t + 1 : t + 2], [key], np.array([False]),
-                             np.array([False]), np.array([False]), np.array([t % 2]), np.array([0.1], np.float32))
-    assert viewed.n_updates.sum() > 0 and viewed.n_updates.tolist() == plain.n_updates.tolist()
-    th.testing.assert_close(viewed.params, plain.params)
+    learn_side_by_side(viewed, grids, plain, crop)
     th.testing.assert_close(viewed.q_values(goals, grids), plain.q_values(goals, crop))
     assert viewed.replay.observations.shape[-3:] == (7, 7, 3)  # the replay keeps whole grids (the goal space reads them)
 
@@ -563,6 +569,73 @@ def test_the_inner_view_reads_every_cell_but_the_outermost_ring() -> None:
 def test_a_view_that_cannot_be_read_is_refused(space: spaces.Box, view: int, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         StackedDQN(space, ACTIONS, equal_keys, view=view)
+
+
+def test_an_overview_reads_each_block_of_cells_as_its_cell_of_highest_first_code() -> None:
+    """Overview(block=3) of a 7 x 7 grid: 3 x 3 blocks of 3 x 3 cells, the middle block centred on the middle cell,
+    the edge padded with code 0; each block is the first cell, row by row, of the highest code in channel 0, with all
+    its channels; an 8 x 8 grid is padded unevenly to 9 x 9."""
+    overview = Overview(GRID, 3)
+    assert overview.blocks == (3, 3) and overview.pads == ((1, 1), (1, 1)) and overview.shape == (3, 3, 3)
+    grid = np.ones((7, 7, 3), np.uint8)
+    grid[..., 1:] = 0
+    grid[3, 3] = [5, 4, 0]  # the centre: the middle block
+    grid[0, 6] = [8, 1, 0]  # a corner: the top right block (rows -1..1, columns 5..7 of the grid)
+    grid[5, 0], grid[6, 1] = [4, 2, 2], [4, 3, 1]  # two of one code in the bottom left block: the first row's wins
+    grid[2, 2] = [2, 5, 0]  # the middle block's corner: below the centre's 5
+    got = overview(np.stack([grid, grid]))
+    assert got.shape == (2, 3, 3, 3) and np.array_equal(got[0], got[1])
+    expected = np.ones((3, 3, 3), np.uint8)
+    expected[..., 1:] = 0
+    expected[1, 1], expected[0, 2], expected[2, 0] = [5, 4, 0], [8, 1, 0], [4, 2, 2]
+    assert got[0].tolist() == expected.tolist()
+    empty = overview(np.zeros((7, 7, 3), np.uint8))
+    assert not empty.any()  # padding and unseen cells alike: code 0
+    uneven = Overview(spaces.Box(0, 10, (8, 8, 3), np.uint8), 3)
+    assert uneven.blocks == (3, 3) and uneven.pads == ((0, 1), (0, 1))
+    marked = np.zeros((8, 8, 3), np.uint8)
+    marked[7, 7, 0] = 9  # the last cell: the bottom right block, which the padding completes
+    assert uneven(marked)[..., 0].tolist() == [[0, 0, 0], [0, 0, 0], [0, 0, 9]]
+
+
+def test_learners_with_an_overview_read_the_view_and_the_blocks_and_learn_as_a_learner_of_both() -> None:
+    """view=3 with overview=3 on 7 x 7 grids: the learners read the 3 x 3 central cells and the 3 x 3 blocks, 18 cells
+    in one row; a cell outside the view changes the Q-values where it becomes its block's most salient cell and not
+    otherwise; acting and learning on whole grids give what a learner of those 18 cells gives, step for step."""
+    rng = np.random.default_rng(2)
+    learners = StackedDQN(GRID, ACTIONS, equal_keys, n_envs=1, seed=0, view=3, overview=3, train_shared=True,
+                          subpolicy_kwargs=dict(learning_starts=4, batch_size=4, train_freq=1, n_steps=2,
+                                                learning_rate=0.01, policy_kwargs=dict(net_arch=[8])))
+    plain = grid_learners(spaces.Box(0, 10, (1, 18, 3), np.uint8))
+    for goal in ("A", "B"):
+        learners.add(goal)
+    assert learners.params.shape == plain.params.shape  # a network of 54 inputs
+    grids = rng.integers(1, 5, (40, 7, 7, 3)).astype(np.uint8)
+    read = np.concatenate([grids[:, 2:5, 2:5].reshape(40, 1, 9, 3), Overview(GRID, 3)(grids).reshape(40, 1, 9, 3)], axis=1
+                          ).reshape(40, 1, 18, 3)
+    np.testing.assert_array_equal(learners._crop(grids), read)
+    goals = np.zeros(len(grids), dtype=np.int64)
+    salient = grids.copy()
+    salient[:, 0, 0] = [10, 0, 0]  # outside the view, now its block's highest code
+    hidden = salient.copy()
+    hidden[:, 1, 1] = rng.integers(0, 10, (40, 3))  # outside the view and below its block's highest code
+    assert not th.allclose(learners.q_values(goals, salient), learners.q_values(goals, grids))
+    th.testing.assert_close(learners.q_values(goals, hidden), learners.q_values(goals, salient))
+    learn_side_by_side(learners, grids, plain, read)
+    th.testing.assert_close(learners.q_values(goals, grids), plain.q_values(goals, read))
+    assert learners.replay.observations.shape[-3:] == (7, 7, 3)  # the replay keeps whole grids
+
+
+@pytest.mark.parametrize("space, overview, policy, match", [
+    (GRID, 4, "MlpPolicy", "odd integer >= 3"),
+    (GRID, 1, "MlpPolicy", "odd integer >= 3"),
+    (GRID, True, "MlpPolicy", "odd integer >= 3"),
+    (OBS, 3, "MlpPolicy", r"\(H, W, C\)"),
+    (spaces.Box(0, 255, (7, 7, 3), np.uint8), 3, "CnnPolicy", "MlpPolicy"),
+])
+def test_an_overview_that_cannot_be_read_is_refused(space: spaces.Box, overview, policy: str, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        StackedDQN(space, ACTIONS, equal_keys, overview=overview, policy=policy)
 
 
 def test_a_carrying_subgoal_learns_from_empty_handed_steps_as_they_would_have_gone_carrying() -> None:

@@ -104,11 +104,12 @@ DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similari
 #: discrete actions, False for DDPG sub-goals, a model each); most learners updated in one round
 #: (``subgoal_learner="stacked"``; None: all); the learning rounds of one step of the envs in one call; the cells
 #: around the agent the learners read (None: the whole observation); the one-hot encoding of each channel the
-#: learners read (None: its integer codes)
+#: learners read (None: its integer codes); the side of the blocks of the coarse copy of the whole observation they
+#: also read (None: none)
 SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(exploration_steps=5_000, exploration_run_steps=None,
                                                 share_experience=True, train_shared=None,
                                                 max_updates=8, grouped_rounds=False, view=None, carry_relabel=0.0,
-                                                one_hot=None)
+                                                one_hot=None, overview=None)
 #: each ``*_kwargs`` argument grouped over defaults: its defaults and the keys it accepts (None: the defaults' keys)
 GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
     "query_kwargs": (QUERY_DEFAULTS, None),
@@ -316,7 +317,10 @@ class HhP(BetweenEpisodes, DoubleDQN):
         :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`, MiniGrid's: turns and steps; 0: none), ``one_hot``
         (discrete actions: the learners read each channel ``c`` of ``(H, W, C)`` uint8 codes as one-hot indicators of
         the codes ``one_hot[c]``, a count n for codes 0 to n - 1 or a list of codes, 0 or ``[]`` leaving it out;
-        MiniGrid's canvas: ``[11, 6, 3]``, every object, colour and state; None: the codes as numbers)
+        MiniGrid's canvas: ``[11, 6, 3]``, every object, colour and state; None: the codes as numbers), ``overview``
+        (discrete actions, MlpPolicy: the learners also read a coarse copy of the whole observation, blocks of
+        ``overview`` x ``overview`` cells each as its most salient cell, the highest code of the first channel: on
+        MiniGrid's canvas, in which direction a goal square, key or door beyond the ``view`` lies; odd, >= 3; None: none)
     :param subpolicy_kwargs: arguments of the sub-goal learners, in SB3 DQN's names (discrete actions: over
         :data:`~sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWARGS`; ``PAPER_SUBPOLICY_KWARGS`` is the paper's learner;
         ``buffer_size`` is the shared replay's, in primitive transitions) or of each sub-goal's SB3 DDPG (continuous)
@@ -587,6 +591,10 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 raise ValueError("subgoal_learner_kwargs['one_hot'] applies to the learners of discrete actions; this "
                                  "env's sub-goal learners are DDPG models that read the observation as it is: leave "
                                  "one_hot out")
+            if learner.get("overview") is not None:
+                raise ValueError("subgoal_learner_kwargs['overview'] applies to the learners of discrete actions; this "
+                                 "env's sub-goal learners are DDPG models that read the whole observation: leave "
+                                 "overview out")
             if learner.get("view") is not None:  # (models saved before the option have no key)
                 raise ValueError("subgoal_learner_kwargs['view'] applies to the learners of discrete actions; this env's "
                                  "sub-goal learners are DDPG models that read the whole observation: leave view out")

@@ -89,6 +89,15 @@ def default_subpolicy_kwargs() -> dict[str, Any]:
     )
 
 
+def grid_shape(space: spaces.Space, option: str) -> tuple[int, ...]:
+    """The shape ``(H, W, C)`` of ``space``, which the learners' ``option`` reads as cells; refused otherwise."""
+    shape = getattr(space, "shape", None)
+    if not isinstance(space, spaces.Box) or shape is None or len(shape) != 3:
+        raise ValueError(f"{option} needs (H, W, C) observations, such as MiniGrid's egocentric canvas; got {space}: "
+                         f"leave {option} out (None)")
+    return shape
+
+
 def view_cells(space: spaces.Space, view: Optional[int | str]) -> Optional[tuple[slice, slice]]:
     """The central ``view`` x ``view`` cells of ``(H, W, C)`` observations of ``space`` (rows, columns), after checking
     that ``view`` can be read there; ``"inner"``: every cell but the outermost ring (on MiniGrid's egocentric canvas
@@ -100,10 +109,7 @@ def view_cells(space: spaces.Space, view: Optional[int | str]) -> Optional[tuple
     if not inner and (isinstance(view, bool) or not isinstance(view, (int, np.integer)) or view < 1 or view % 2 == 0):
         raise ValueError(f"view (subgoal_learner_kwargs) must be an odd integer >= 1 (cells around the centre) or "
                          f"'inner' (all but the outermost ring), got {view!r}")
-    shape = getattr(space, "shape", None)
-    if not isinstance(space, spaces.Box) or shape is None or len(shape) != 3:
-        raise ValueError(f"view needs (H, W, C) observations, such as MiniGrid's egocentric canvas; got {space}: "
-                         "leave view out (None)")
+    shape = grid_shape(space, "view")
     side = min(shape[0], shape[1])
     if inner:
         if side < 3:
@@ -114,6 +120,40 @@ def view_cells(space: spaces.Space, view: Optional[int | str]) -> Optional[tuple
         raise ValueError(f"view {view} is larger than the observation's {shape[0]} x {shape[1]} cells: use at most "
                          f"{side if side % 2 else side - 1}, or None for all")
     return tuple(slice(length // 2 - view // 2, length // 2 + view // 2 + 1) for length in shape[:2])
+
+
+class Overview:
+    """A coarse copy of a whole ``(H, W, C)`` observation: ``block`` x ``block`` cells, the middle block centred on the
+    middle cell (MiniGrid's egocentric canvas: the agent), each block read as its most salient cell, the one with the
+    highest code in the first channel (MiniGrid: the object type, whose codes rank lava, goal squares, boxes, balls,
+    keys and doors above walls, floor and unseen cells), with all its channels; the edge is padded with code 0 (MiniGrid:
+    unseen). A learner that reads a small view of the cells around the agent learns from it in which direction an
+    object beyond that view lies.
+
+    :param space: the observations' space (a Box of shape ``(H, W, C)``)
+    :param block: the side of a block, odd, >= 3
+    """
+
+    def __init__(self, space: spaces.Space, block: Any) -> None:
+        if isinstance(block, bool) or not isinstance(block, (int, np.integer)) or block < 3 or block % 2 == 0:
+            raise ValueError(f"overview (subgoal_learner_kwargs) must be an odd integer >= 3 (the side of the blocks "
+                             f"of cells it reads as one), got {block!r}")
+        shape = grid_shape(space, "overview")
+        self.block = int(block)
+        # an odd number of blocks that covers each side, the middle block centred on the middle cell
+        self.blocks = tuple(2 * (-(-length // self.block) // 2) + 1 for length in shape[:2])
+        extra = [count * self.block - length for count, length in zip(self.blocks, shape[:2])]
+        self.pads = tuple((more // 2, more - more // 2) for more in extra)
+        self.shape = (*self.blocks, shape[2])
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """``(..., H, W, C)`` observations as ``(..., blocks, blocks, C)``: each block's most salient cell."""
+        lead, (rows, columns), b = obs.shape[:-3], self.blocks, self.block
+        padded = np.pad(obs, [(0, 0)] * len(lead) + list(self.pads) + [(0, 0)])
+        cells = padded.reshape(*lead, rows, b, columns, b, obs.shape[-1])
+        cells = np.moveaxis(cells, -4, -3).reshape(*lead, rows, columns, b * b, obs.shape[-1])
+        salient = np.argmax(cells[..., 0], axis=-1)  # the first of the highest codes, row by row
+        return np.take_along_axis(cells, salient[..., None, None], axis=-2)[..., 0, :]
 
 
 class OneHotCodes:
@@ -293,6 +333,9 @@ class StackedDQN:
         (on MiniGrid's canvas it only ever shows the grid's border wall, so the learners lose nothing and their first
         layer reads a quarter fewer inputs); the replay keeps whole observations (the goal space reads them). None: the
         whole observation
+    :param overview: the learners also read a coarse copy of the whole observation (:class:`Overview`): blocks of
+        ``overview`` x ``overview`` cells, each as its most salient cell, so that a learner with a small ``view`` sees
+        in which direction a far object lies; odd, >= 3; MlpPolicy only. None: no overview
     :param carry_relabel: the share of a drawn batch, for a sub-goal that carries an object, replaced where possible
         by steps taken with empty hands as they would have gone carrying it (``counterfactual``, the goal space's
         :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`), as one-step returns; 0: none
@@ -333,6 +376,7 @@ class StackedDQN:
         carry_relabel: float = 0.0,
         counterfactual: Optional[Callable] = None,
         one_hot: Optional[Sequence[int]] = None,
+        overview: Optional[int] = None,
     ) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
@@ -359,6 +403,11 @@ class StackedDQN:
                 raise ValueError(f"subpolicy_kwargs['{name}'] must be an integer >= 1 (counted in steps), got {kw[name]!r}")
         self.observation_space, self.action_space = observation_space, action_space
         self.view, self._cells = view, view_cells(observation_space, view)
+        self.overview = overview
+        self._overview = None if overview is None else Overview(observation_space, overview)
+        if self._overview is not None and policy != "MlpPolicy":
+            raise ValueError(f"overview (subgoal_learner_kwargs) adds cells that are not an image: it needs the "
+                             f"sub-goal learners' MlpPolicy, got {policy!r}; leave overview out or use MlpPolicy")
         self._one_hot = None if one_hot is None else OneHotCodes(observation_space, one_hot)
         self.kwargs = kw
         self.lr, self.gamma = float(kw["learning_rate"]), float(kw["gamma"])
@@ -390,6 +439,10 @@ class StackedDQN:
         if self._cells is not None:  # what the networks read: the central cells
             net_space = spaces.Box(observation_space.low[self._cells], observation_space.high[self._cells],
                                    dtype=observation_space.dtype)
+        if self._overview is not None:  # and the overview's blocks after them, in one row of cells
+            cells = int(np.prod(net_space.shape[:2])) + int(np.prod(self._overview.shape[:2]))
+            net_space = spaces.Box(observation_space.low.min(), observation_space.high.max(),
+                                   (1, cells, net_space.shape[2]), dtype=observation_space.dtype)
         if self._one_hot is not None:  # what the networks read: indicators
             net_space = spaces.Box(0.0, 1.0, (*net_space.shape[:2], self._one_hot.n_indicators), np.float32)
         self._transpose = is_image_space(net_space) and not is_image_space_channels_first(net_space)
@@ -684,8 +737,14 @@ class StackedDQN:
 
     # ------------------------------------------------------------------ acting
     def _crop(self, obs: np.ndarray) -> np.ndarray:
-        """What the networks read of observations ``(..., H, W, C)``: the central cells with a ``view``, else all."""
-        return obs if self._cells is None else obs[(..., *self._cells, slice(None))]
+        """What the networks read of observations ``(..., H, W, C)``: the central cells with a ``view``, else all;
+        with an ``overview``, those cells and the overview's blocks in one row ``(..., 1, cells, C)``."""
+        cells = obs if self._cells is None else obs[(..., *self._cells, slice(None))]
+        if self._overview is None:
+            return cells
+        lead, channels = obs.shape[:-3], obs.shape[-1]
+        return np.concatenate([cells.reshape(*lead, 1, -1, channels),
+                               self._overview(obs).reshape(*lead, 1, -1, channels)], axis=-2)
 
     def _tensor(self, obs: np.ndarray, cropped: bool = False) -> th.Tensor:
         """Observations as the networks' input tensor (``cropped``: already :meth:`_crop`-ped), with ``one_hot`` as
