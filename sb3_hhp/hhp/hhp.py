@@ -587,17 +587,11 @@ class HhP(BetweenEpisodes, DoubleDQN):
             if learner.get("carry_relabel"):
                 raise ValueError("subgoal_learner_kwargs['carry_relabel'] applies to the learners of discrete actions: "
                                  "leave it out for this env's DDPG sub-goal learners")
-            if learner.get("one_hot") is not None:
-                raise ValueError("subgoal_learner_kwargs['one_hot'] applies to the learners of discrete actions; this "
-                                 "env's sub-goal learners are DDPG models that read the observation as it is: leave "
-                                 "one_hot out")
-            if learner.get("overview") is not None:
-                raise ValueError("subgoal_learner_kwargs['overview'] applies to the learners of discrete actions; this "
-                                 "env's sub-goal learners are DDPG models that read the whole observation: leave "
-                                 "overview out")
-            if learner.get("view") is not None:  # (models saved before the option have no key)
-                raise ValueError("subgoal_learner_kwargs['view'] applies to the learners of discrete actions; this env's "
-                                 "sub-goal learners are DDPG models that read the whole observation: leave view out")
+            for name in ("one_hot", "overview", "view"):  # how the learners read cells (models saved before an option have no key)
+                if learner.get(name) is not None:
+                    raise ValueError(f"subgoal_learner_kwargs['{name}'] applies to the learners of discrete actions; "
+                                     f"this env's sub-goal learners are DDPG models that read the whole observation as "
+                                     f"it is: leave {name} out")
             self.subpolicies = PerGoalLearners(
                 SubpolicySet(obs_space, self.primitive_action_space, policy=self.subpolicy_policy,
                              subpolicy_kwargs=self.subpolicy_kwargs, exploration_steps=learner["exploration_steps"],

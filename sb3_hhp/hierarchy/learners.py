@@ -405,9 +405,6 @@ class StackedDQN:
         self.view, self._cells = view, view_cells(observation_space, view)
         self.overview = overview
         self._overview = None if overview is None else Overview(observation_space, overview)
-        if self._overview is not None and policy != "MlpPolicy":
-            raise ValueError(f"overview (subgoal_learner_kwargs) adds cells that are not an image: it needs the "
-                             f"sub-goal learners' MlpPolicy, got {policy!r}; leave overview out or use MlpPolicy")
         self._one_hot = None if one_hot is None else OneHotCodes(observation_space, one_hot)
         self.kwargs = kw
         self.lr, self.gamma = float(kw["learning_rate"]), float(kw["gamma"])
@@ -452,6 +449,9 @@ class StackedDQN:
         policy_class = {"MlpPolicy": MlpPolicy, "CnnPolicy": CnnPolicy}.get(policy) if isinstance(policy, str) else policy
         if policy_class is None:
             raise ValueError(f"Sub-goal learners use 'MlpPolicy' or 'CnnPolicy', got {policy!r}")
+        if self._overview is not None and issubclass(policy_class, CnnPolicy):
+            raise ValueError(f"overview (subgoal_learner_kwargs) adds cells that are not an image: it needs the "
+                             f"sub-goal learners' MlpPolicy, got {policy!r}; leave overview out or use MlpPolicy")
         policy_kwargs = {k: v for k, v in dict(kw["policy_kwargs"] or {}).items() if k != "optimizer_kwargs"}
         # an SB3 policy of the learners' shape on their device: the template, fresh weights, and policy(g)'s views
         self._make_policy = lambda: policy_class(net_space, action_space, lambda _: self.lr, **policy_kwargs).to(self.device)
