@@ -188,6 +188,11 @@ def test_a_learner_overview_on_ddpg_subgoals_names_the_fix() -> None:
         HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(overview=3))
 
 
+def test_a_target_range_on_ddpg_subgoals_names_the_fix() -> None:
+    with pytest.raises(ValueError, match="target_range.*discrete actions.*leave it out.*DDPG"):
+        HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(target_range=[-1.0, 1.0]))
+
+
 def test_a_run_clock_on_ddpg_subgoals_names_the_fix() -> None:
     with pytest.raises(ValueError, match="exploration_run_steps.*DDPG.*leave it out"):
         HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(exploration_run_steps=1000))

@@ -704,6 +704,16 @@ def test_exploration_run_steps_reaches_the_learners_and_saves(tmp_path) -> None:
     assert make_model().subpolicies.exploration_run_steps is None  # the default: own steps only
 
 
+def test_a_target_range_reaches_the_learners_and_saves(tmp_path) -> None:
+    model = make_model(subgoal_learner_kwargs=dict(target_range=[-1.0, 1.0]))
+    assert model.subpolicies.target_range == (-1.0, 1.0)
+    model.save(tmp_path / "clipped")
+    assert HhP.load(tmp_path / "clipped").subpolicies.target_range == (-1.0, 1.0)
+    assert make_model().subpolicies.target_range is None  # the default: unclipped
+    with pytest.raises(ValueError, match="target_range.*low < high"):
+        make_model(subgoal_learner_kwargs=dict(target_range=[1.0, 1.0]))
+
+
 def test_carry_relabel_reaches_the_learners_replay_and_saves(tmp_path) -> None:
     """subgoal_learner_kwargs carry_relabel: the stacked learners' replay draws with the goal space's counterfactual;
     the heads learner (one batch for all) and values outside [0, 1] are refused before training."""

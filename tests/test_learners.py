@@ -155,9 +155,9 @@ def fixed_batch(goals: np.ndarray, seed: int) -> GoalBatch:
     )
 
 
-def sb3_step(policy, batch: GoalBatch, row: int, mask=None) -> th.Tensor:
+def sb3_step(policy, batch: GoalBatch, row: int, mask=None, target_range=None) -> th.Tensor:
     """One Double DQN step of SB3's policy on row ``row`` of ``batch`` (torch's Adam, clip_grad_norm_ 0.5), the next
-    action chosen among those ``mask`` allows: the parameters after it, flat."""
+    action chosen among those ``mask`` allows, the targets clipped to ``target_range``: the parameters after it, flat."""
     optimizer = th.optim.Adam(policy.q_net.parameters(), lr=0.01)
     obs, next_obs = th.as_tensor(batch.observations[row]), th.as_tensor(batch.next_observations[row])
     with th.no_grad():
@@ -167,6 +167,8 @@ def sb3_step(policy, batch: GoalBatch, row: int, mask=None) -> th.Tensor:
         next_action = online.argmax(dim=1, keepdim=True)  # double Q: online chooses
         next_q = policy.q_net_target(next_obs).gather(1, next_action)[:, 0]  # target evaluates
         y = th.as_tensor(batch.returns[row]) + 0.81 * (1 - th.as_tensor(batch.dones[row])) * next_q
+        if target_range is not None:
+            y = y.clamp(*target_range)
     q = policy.q_net(obs).gather(1, th.as_tensor(batch.actions[row]).long()[:, None])[:, 0]
     loss = (th.as_tensor(batch.weights[row]) * F.smooth_l1_loss(q, y, reduction="none")).mean()
     optimizer.zero_grad()
@@ -196,6 +198,36 @@ def test_one_grouped_update_equals_sb3s_double_dqn_step_for_every_subgoal(monkey
     if 1 not in due:
         th.testing.assert_close(learners.params[1], untouched)  # a sub-goal that was not due does not move
     assert learners.n_updates.tolist() == [1, int(1 in due), 1]
+
+
+@pytest.mark.parametrize("written_out", [True, False], ids=["written-out backward", "autograd"])
+def test_a_target_range_clips_every_td_target_as_her_does(monkeypatch: pytest.MonkeyPatch, written_out: bool) -> None:
+    """target_range (low, high): the update is SB3's Double DQN step on targets clipped to [low, high]; the clip
+    bites on this batch (its returns are standard normal), so the unclipped step lands elsewhere."""
+    bounds = (-0.3, 0.3)
+    clipped, plain = small_learners(target_range=bounds), small_learners()
+    assert clipped.target_range == bounds and plain.target_range is None
+    goals = np.array([0, 1])
+    batch = fixed_batch(goals, seed=5)
+    for learners in (clipped, plain):
+        learners._relu_mlp = written_out and learners._relu_mlp
+        for goal in ("A", "B"):
+            learners.add(goal)
+        fill(learners.replay, ["x"] * 8, acting=[0] * 8)
+        monkeypatch.setattr(learners.replay, "sample", lambda goals, batch_size: batch)
+    expected = [sb3_step(clipped.policy(int(goal)), batch, row, target_range=bounds) for row, goal in enumerate(goals)]
+    clipped.train(goals)
+    plain.train(goals)
+    for goal in goals:
+        th.testing.assert_close(clipped.params[goal], expected[goal], rtol=1e-5, atol=1e-6)
+        assert not th.allclose(plain.params[goal], expected[goal], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("target_range, match", [((1.0, -1.0), "low < high"), ((0.0, float("inf")), "finite"),
+                                                 ((1.0,), "two numbers"), ("high", "two numbers")])
+def test_a_target_range_that_is_no_range_is_refused(target_range, match: str) -> None:
+    with pytest.raises(ValueError, match=f"target_range.*{match}"):
+        small_learners(target_range=target_range)
 
 
 @pytest.mark.parametrize("plan", [[[0, 2], [0, 1, 2]], [[0, 1, 2], [0, 1, 2]], [[1, 2], [1, 2], [1, 2]]],
@@ -381,17 +413,19 @@ def test_bad_subpolicy_arguments_are_refused(kwargs: dict, match: str) -> None:
         small_learners(subpolicy_kwargs=kwargs)
 
 
-def test_the_heads_update_is_each_subgoals_double_dqn_loss_on_one_relabelled_batch(monkeypatch) -> None:
+@pytest.mark.parametrize("target_range", [None, (-0.05, 0.05)])
+def test_the_heads_update_is_each_subgoals_double_dqn_loss_on_one_relabelled_batch(monkeypatch, target_range) -> None:
     """SharedHeadsDQN: one batch of stored transitions, relabelled for every sub-goal; its loss is the sum over
     sub-goals of each one's importance-weighted Huber loss against its Double DQN target of its own n-step returns
-    (computed here with SB3's DQNPolicy view of each head), and one Adam step on the whole network follows."""
+    (computed here with SB3's DQNPolicy view of each head; clipped to ``target_range`` where one is given), and one
+    Adam step on the whole network follows."""
     import copy
 
     from sb3_hhp.hierarchy.learners import SharedHeadsDQN
 
     learners = SharedHeadsDQN(spaces.Box(-1, 1, (3,), np.float32), ACTIONS, equal_keys, seed=0, subpolicy_kwargs=dict(
         policy_kwargs=dict(net_arch=[8]), batch_size=4, learning_starts=4, gamma=0.5, n_steps=3, learning_rate=0.01,
-        max_grad_norm=100.0, replay_buffer_kwargs=dict()))
+        max_grad_norm=100.0, replay_buffer_kwargs=dict()), target_range=target_range)
     for goal in ("A", "B"):
         learners.add(goal)
     rng = np.random.default_rng(0)
@@ -416,6 +450,9 @@ def test_the_heads_update_is_each_subgoals_double_dqn_loss_on_one_relabelled_bat
             next_action = policy.q_net(next_obs).argmax(dim=1, keepdim=True)
             next_q = policy.q_net_target(next_obs).gather(1, next_action)[:, 0]
             y = th.as_tensor(returns[g]) + th.as_tensor(discounts[g]) * (1 - th.as_tensor(dones[g])) * next_q
+            if target_range is not None:
+                assert ((y < target_range[0]) | (y > target_range[1])).any()  # the clip bites on this batch
+                y = y.clamp(*target_range)
         obs = th.as_tensor(replay.observations[leaves, 0])
         q = network(obs)[:, g].gather(1, th.as_tensor(replay.actions[leaves, 0]).long()[:, None])[:, 0]
         loss = loss + F.smooth_l1_loss(q, y)  # equal priorities: every importance weight is 1

@@ -105,11 +105,11 @@ DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similari
 #: (``subgoal_learner="stacked"``; None: all); the learning rounds of one step of the envs in one call; the cells
 #: around the agent the learners read (None: the whole observation); the one-hot encoding of each channel the
 #: learners read (None: its integer codes); the side of the blocks of the coarse copy of the whole observation they
-#: also read (None: none)
+#: also read (None: none); the range their TD targets are clipped to (None: unclipped)
 SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(exploration_steps=5_000, exploration_run_steps=None,
                                                 share_experience=True, train_shared=None,
                                                 max_updates=8, grouped_rounds=False, view=None, carry_relabel=0.0,
-                                                one_hot=None, overview=None)
+                                                one_hot=None, overview=None, target_range=None)
 #: each ``*_kwargs`` argument grouped over defaults: its defaults and the keys it accepts (None: the defaults' keys)
 GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
     "query_kwargs": (QUERY_DEFAULTS, None),
@@ -320,7 +320,9 @@ class HhP(BetweenEpisodes, DoubleDQN):
         MiniGrid's canvas: ``[11, 6, 3]``, every object, colour and state; None: the codes as numbers), ``overview``
         (discrete actions, MlpPolicy: the learners also read a coarse copy of the whole observation, blocks of
         ``overview`` x ``overview`` cells each as its most salient cell, the highest code of the first channel: on
-        MiniGrid's canvas, in which direction a goal square, key or door beyond the ``view`` lies; odd, >= 3; None: none)
+        MiniGrid's canvas, in which direction a goal square, key or door beyond the ``view`` lies; odd, >= 3; None: none),
+        ``target_range`` (discrete actions: ``(low, high)``, the learners' TD targets clipped to it, as HER clips its
+        targets; with ``alpha`` 0 eq. 5 puts every return in ``[-1, 1]``; None: unclipped)
     :param subpolicy_kwargs: arguments of the sub-goal learners, in SB3 DQN's names (discrete actions: over
         :data:`~sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWARGS`; ``PAPER_SUBPOLICY_KWARGS`` is the paper's learner;
         ``buffer_size`` is the shared replay's, in primitive transitions) or of each sub-goal's SB3 DDPG (continuous)
@@ -584,9 +586,10 @@ class HhP(BetweenEpisodes, DoubleDQN):
             if learner.get("exploration_run_steps") is not None:
                 raise ValueError("subgoal_learner_kwargs['exploration_run_steps'] applies to the learners of discrete "
                                  "actions: this env's DDPG sub-goal learners explore over their own steps; leave it out")
-            if learner.get("carry_relabel"):
-                raise ValueError("subgoal_learner_kwargs['carry_relabel'] applies to the learners of discrete actions: "
-                                 "leave it out for this env's DDPG sub-goal learners")
+            for name in ("carry_relabel", "target_range"):  # what the learners of discrete actions learn with
+                if learner.get(name):
+                    raise ValueError(f"subgoal_learner_kwargs['{name}'] applies to the learners of discrete actions: "
+                                     f"leave it out for this env's DDPG sub-goal learners")
             for name in ("one_hot", "overview", "view"):  # how the learners read cells (models saved before an option have no key)
                 if learner.get(name) is not None:
                     raise ValueError(f"subgoal_learner_kwargs['{name}'] applies to the learners of discrete actions; "

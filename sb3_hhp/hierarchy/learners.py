@@ -296,6 +296,20 @@ def _check_optional_count(name: str, value: Any) -> None:
         raise ValueError(f"{name} (subgoal_learner_kwargs) must be an integer >= 1 or None, got {value!r}")
 
 
+def _check_range(target_range: Optional[Sequence[float]]) -> Optional[tuple[float, float]]:
+    """``subgoal_learner_kwargs['target_range']``: two finite numbers, low below high, or None."""
+    if target_range is None:
+        return None
+    try:
+        low, high = (float(value) for value in target_range)
+    except (TypeError, ValueError):
+        raise ValueError(f"target_range (subgoal_learner_kwargs) must be two numbers (low, high), e.g. [-1.0, 1.0] for "
+                         f"the returns of eq. 5 with alpha 0, got {target_range!r}") from None
+    if not (np.isfinite(low) and np.isfinite(high) and low < high):
+        raise ValueError(f"target_range (subgoal_learner_kwargs) must be finite with low < high, got {target_range!r}")
+    return low, high
+
+
 class StackedDQN:
     """Every sub-goal's Double DQN learner, stacked, over one shared replay of primitive transitions.
 
@@ -345,6 +359,11 @@ class StackedDQN:
         state); ``[[2, 4, 5, 8], [], [1, 2]]``: walls, doors, keys, goal squares, closed and locked (DoorKey). A ReLU
         unit tells "a door here" from one input, where the codes put the door (4) between the wall (2) and the key
         (5). Each indicator is an input of the first layer, which costs that many times more. None: the codes
+    :param target_range: ``(low, high)``: every TD target clipped to the returns the learners' rewards allow, as HER
+        clips its targets (Andrychowicz et al., 2017). With ``alpha`` 0, eq. 5's rewards (+1 on reaching the sub-goal,
+        -1 on ending without it, else 0) put every return in ``[-1, 1]``; noisy values above 1 then no longer feed
+        themselves through the max of the targets, where a walk's first step (picking the key up: exactly 1) lost to
+        going on. None: unclipped
     """
 
     #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
@@ -377,9 +396,11 @@ class StackedDQN:
         counterfactual: Optional[Callable] = None,
         one_hot: Optional[Sequence[int]] = None,
         overview: Optional[int] = None,
+        target_range: Optional[Sequence[float]] = None,
     ) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
+        self.target_range = _check_range(target_range)
         _check_optional_count("max_updates", max_updates)
         self.max_updates = None if max_updates is None else int(max_updates)
         self.action_mask = action_mask  # the goal space's (GoalSpace.action_mask): actions no learner takes in a state
@@ -933,6 +954,8 @@ class StackedDQN:
                 y_behaviour = (as_t(batch.behaviour_returns)
                                + as_t(batch.behaviour_discounts) * (1 - as_t(batch.behaviour_dones)) * next_q[:, n:])
                 y = th.maximum(y, y_behaviour)
+            if self.target_range is not None:
+                y = y.clamp(*self.target_range)
         loss = (weights * F.smooth_l1_loss(q, y, reduction="none")).mean(dim=1)  # (T,): each sub-goal's own loss
         if self._relu_mlp:
             # d loss / d q: the Huber loss's derivative clamp(q - y, -1, 1), weighted, over the batch, at the actions taken
@@ -1230,6 +1253,8 @@ class SharedHeadsDQN(StackedDQN):
                 next_q = target.gather(-1, online.argmax(-1, keepdim=True))[..., 0]
                 y_k = as_t(k_returns) + as_t(k_discounts) * (1 - as_t(k_dones)) * next_q
                 y = y_k if y is None else th.maximum(y, y_k)  # the behaviour's return is a lower bound
+            if self.target_range is not None:
+                y = y.clamp(*self.target_range)
         q_all = self.network(self._tensor(replay.observations[rows, cols]))  # (B, capacity, A)
         actions = as_t(replay.actions[rows, cols].reshape(batch_size).astype(np.int64))
         q = q_all[:, as_t(goals), :].gather(-1, actions[:, None, None].expand(-1, len(goals), 1))[..., 0].T  # (T, B)
