@@ -1,11 +1,16 @@
-"""The diagnostics' own arithmetic (benchmarks/diagnostics): where the object a sub-goal faces lies at a choice."""
+"""The diagnostics' own arithmetic (benchmarks/diagnostics): where the object a sub-goal faces lies at a choice, and
+what a walk's idle steps and action gaps add up to."""
+
+from types import SimpleNamespace
 
 import gymnasium as gym
 import minigrid  # noqa: F401  (registers the MiniGrid envs)
 from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX, STATE_TO_IDX
 from minigrid.core.world_object import Door, Key
+import numpy as np
+import torch as th
 
-from benchmarks.diagnostics.choice_trace import target_distance, view_reach
+from benchmarks.diagnostics.choice_trace import q_readings, target_distance, value_readings, view_reach, walk_readings
 from benchmarks.diagnostics.learner_proxy import make_env, split_at, start_distance, tries
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridGoalSpace, wrap_env
 
@@ -56,6 +61,43 @@ def test_view_reach_splits_walks_at_the_learners_view() -> None:
     everything = view_reach(episodes, None)["goals"]["to the door"]
     assert (everything["in_view"], everything["out_of_view"]) == (4, 0)
     assert view_reach([dict(choices=[dict(goal="task solved", distance=None, reached=True)])], 15) is None
+
+
+def test_walk_readings_weigh_the_gap_by_steps_and_split_reached_from_failed_walks() -> None:
+    episodes = [dict(choices=[dict(goal="to the door", reached=True, steps=4, idle=1, gap=0.10),
+                              dict(goal="to the door", reached=False, steps=10, idle=5, gap=0.01),
+                              dict(goal="to the door", reached=True, steps=6, idle=0, gap=0.20)]),
+                dict(choices=[dict(goal="task solved", reached=False, steps=2, idle=2, gap=0.0),
+                              dict(goal="older trace", reached=True)])]  # a choice recorded without the readings
+    rows = walk_readings(episodes)
+    door = rows["to the door"]
+    assert (door["reached_walks"], door["reached_steps"], door["reached_idle"]) == (2, 10, 1)
+    assert door["reached_idle_share"] == 0.1
+    assert abs(door["reached_gap"] - (0.10 * 4 + 0.20 * 6) / 10) < 1e-12  # by steps, not the walks' plain mean 0.15
+    assert (door["failed_walks"], door["failed_idle_share"], door["failed_gap"]) == (1, 0.5, 0.01)
+    solved = rows["task solved"]
+    assert solved["reached_walks"] == 0 and solved["reached_idle_share"] is None and solved["reached_gap"] is None
+    assert "older trace" not in rows
+
+
+def test_q_readings_are_the_best_q_value_and_its_margin_over_the_second_best() -> None:
+    values = {0: [0.2, 0.9, 0.5], 1: [0.3, 0.3, 0.1]}
+    learners = SimpleNamespace(q_values=lambda goals, obs: th.tensor([values[int(goals[0])]]))
+    model = SimpleNamespace(subpolicies=learners)
+    best, gap = q_readings(model, 0, np.zeros(3))
+    assert abs(best - 0.9) < 1e-6 and abs(gap - 0.4) < 1e-6
+    assert q_readings(model, 1, np.zeros(3))[1] == 0.0  # a tie: no gap
+    best, gap = q_readings(SimpleNamespace(subpolicies=object()), 0, np.zeros(3))  # no Q-values (DDPG)
+    assert np.isnan(best) and gap == 0.0
+
+
+def test_value_readings_weigh_walks_by_steps_and_count_the_steps_above_1() -> None:
+    episodes = [dict(choices=[dict(steps=4, best=1.2, above_1=3), dict(steps=6, best=0.7, above_1=0)]),
+                dict(choices=[dict(steps=0, best=0.0, above_1=0), dict(goal="older trace", steps=5)])]
+    values = value_readings(episodes)
+    assert values["steps"] == 10 and values["share_above_1"] == 0.3
+    assert abs(values["mean_best"] - (1.2 * 4 + 0.7 * 6) / 10) < 1e-12
+    assert value_readings([dict(choices=[dict(goal="older trace", steps=5)])]) is None
 
 
 def test_the_proxy_splits_its_tries_by_where_the_object_starts() -> None:

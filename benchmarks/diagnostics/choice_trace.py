@@ -8,7 +8,11 @@ loops (picking the key up, dropping it) or a choice that never succeeds shows wh
 walk also records how far (in cells, the larger of the two axes) the nearest object the sub-goal faces was at its start
 (e.g. the locked door, for "carrying key, facing locked door"), and whether that object was within the cells the
 sub-goal learners read (``subgoal_learner_kwargs`` ``view``; every cell without one); printed per sub-goal: chosen and
-reached with the object in view and out of it.
+reached with the object in view and out of it. Each walk also counts its idle steps (actions that left the env as it
+was: a turn back and forth is not one, picking up nothing, toggling a wall or ``done`` are) and the acting learner's
+action gap at each step (its best Q-value minus its second best): a greedy learner whose gap is smaller than its
+values' error picks its actions by that error. Printed last: the acting learner's mean best Q-value over all steps, and
+the share of steps where it was above 1, more than any return of eq. 5 (with ``alpha`` 0) can be.
 
     python benchmarks/diagnostics/choice_trace.py logs/hhp/MiniGrid-KeyCorridorS4R3-v0_1 \\
         --env MiniGrid-KeyCorridorS4R3-v0 --episodes 20 --out trace.json
@@ -71,9 +75,12 @@ def nearest_distance(env: gym.Env, match: np.ndarray) -> Optional[int]:
 
 
 def trace_episode(model: HhP, env: gym.Env, seed: int, deterministic: bool) -> dict:
-    """One episode: its choices ``(state key, chosen sub-goal, reached, steps, cycled, distance)`` and whether the task
-    was solved; ``cycled``: the env came back to a state it was in since the choice, before the sub-goal was reached;
-    ``distance``: :func:`target_distance` at the choice."""
+    """One episode: its choices ``(state key, chosen sub-goal, reached, steps, cycled, distance, idle, gap, best,
+    above_1)`` and whether the task was solved; ``cycled``: the env came back to a state it was in since the choice,
+    before the sub-goal was reached; ``distance``: :func:`target_distance` at the choice; ``idle``: steps whose action
+    left the env as it was; ``gap``: the mean over the walk's steps of the acting learner's best Q-value minus its
+    second best; ``best``: the mean of that best Q-value; ``above_1``: the steps where it was above 1, the most any
+    return of eq. 5 with ``alpha`` 0 can be."""
     obs, _ = env.reset(seed=seed)
     describe = model.goal_space.describe
     state, start, choices, current, seen = None, True, [], None, set()
@@ -83,21 +90,74 @@ def trace_episode(model: HhP, env: gym.Env, seed: int, deterministic: bool) -> d
         if steps == 1:  # a new choice was made in this state
             current = dict(state=describe(model.goal_space.key(obs)), goal=describe(model.subgoals[goal].key),
                            reached=False, steps=0, cycled=False,
-                           distance=target_distance(env, model.goal_space, model.subgoals[goal].key))
+                           distance=target_distance(env, model.goal_space, model.subgoals[goal].key), idle=0, gap=0.0,
+                           best=0.0, above_1=0)
             choices.append(current)
             seen = set()
         here = env_state(env)
         current["cycled"] = current["cycled"] or (here in seen and not current["reached"])
         seen.add(here)
+        best, gap = q_readings(model, goal, obs)
+        current["gap"] += gap
+        current["best"] += best
+        current["above_1"] += int(best > 1.0)
         obs, reward, terminated, truncated, _ = env.step(action)
         start = False
         current["steps"] += 1
+        current["idle"] += int(env_state(env) == here)
         # the key training reaches sub-goals by: "task solved" where the episode ends with a reward
         key = model.goal_space.terminal_key(obs, float(reward), bool(terminated))
         achieved, _ = option_terminal(model.goal_space, key, model.subgoals[goal].key, steps, model.max_subgoal_steps)
         current["reached"] = current["reached"] or bool(achieved)
         if terminated or truncated:
+            for choice in choices:
+                choice["gap"] = choice["gap"] / max(choice["steps"], 1)
+                choice["best"] = choice["best"] / max(choice["steps"], 1)
             return dict(seed=seed, solved=bool(terminated and reward > 0), choices=choices)
+
+
+def q_readings(model: HhP, goal: int, obs: np.ndarray) -> tuple[float, float]:
+    """Sub-goal ``goal``'s learner at ``obs``: its best Q-value, and that minus its second best (the action gap);
+    (nan, 0.0) for a learner without Q-values."""
+    q_values = getattr(model.subpolicies, "q_values", None)
+    if q_values is None:
+        return float("nan"), 0.0
+    top = np.sort(np.asarray(q_values(np.array([goal]), np.asarray(obs)[None]), dtype=np.float64)[0])[-2:]
+    return float(top[-1]), (float(top[-1] - top[0]) if len(top) == 2 else 0.0)
+
+
+def value_readings(episodes: list[dict]) -> Optional[dict]:
+    """Over every step of every walk: the acting learner's mean best Q-value and the share of steps where it was above
+    1; None where no choice has the readings."""
+    walks = [c for e in episodes for c in e["choices"] if "best" in c and c["steps"] and np.isfinite(c["best"])]
+    steps = sum(c["steps"] for c in walks)
+    if not steps:
+        return None
+    return dict(steps=steps, mean_best=sum(c["best"] * c["steps"] for c in walks) / steps,
+                share_above_1=sum(c["above_1"] for c in walks) / steps)
+
+
+def walk_readings(episodes: list[dict]) -> dict[str, dict]:
+    """Per chosen sub-goal: walks, steps, idle steps (their share of the steps) and the mean action gap over steps,
+    from reached walks and from failed ones apart."""
+    rows: dict[str, dict] = {}
+    for episode in episodes:
+        for choice in episode["choices"]:
+            if "idle" not in choice:
+                continue
+            side = "reached" if choice["reached"] else "failed"
+            row = rows.setdefault(choice["goal"], {f"{s}_{k}": 0 for s in ("reached", "failed")
+                                                   for k in ("walks", "steps", "idle", "gap_sum")})
+            row[f"{side}_walks"] += 1
+            row[f"{side}_steps"] += choice["steps"]
+            row[f"{side}_idle"] += choice["idle"]
+            row[f"{side}_gap_sum"] += choice["gap"] * choice["steps"]
+    for row in rows.values():
+        for side in ("reached", "failed"):
+            steps = row[f"{side}_steps"]
+            row[f"{side}_idle_share"] = row[f"{side}_idle"] / steps if steps else None
+            row[f"{side}_gap"] = row.pop(f"{side}_gap_sum") / steps if steps else None
+    return rows
 
 
 def view_reach(episodes: list[dict], view: Optional[int]) -> Optional[dict]:
@@ -159,9 +219,24 @@ def main() -> None:
         for goal, row in reach["goals"].items():
             print(f"{row['in_view']:15d} {row['in_view_reached']:7d} {row['out_of_view']:19d} "
                   f"{row['out_of_view_reached']:7d}  {goal}")
+    walks = walk_readings(episodes)
+    values = value_readings(episodes)
+    if values:
+        print(f"the acting learner's best Q-value over {values['steps']} steps: mean {values['mean_best']:.3f}, above 1 "
+              f"(more than eq. 5 with alpha 0 can return) at {values['share_above_1']:.2f} of them")
+    print("walks by outcome: steps, idle steps (actions that left the env as it was) and the learner's mean action "
+          "gap (best Q minus second best)")
+    print(f"{'reached':>7} {'steps':>6} {'idle':>5} {'gap':>6} {'failed':>7} {'steps':>6} {'idle':>5} {'gap':>6}  sub-goal")
+    for goal, row in sorted(walks.items(), key=lambda item: -(item[1]["reached_walks"] + item[1]["failed_walks"])):
+        cells = []
+        for side in ("reached", "failed"):
+            share, gap = row[f"{side}_idle_share"], row[f"{side}_gap"]
+            cells += [f"{row[f'{side}_walks']:7d}", f"{row[f'{side}_steps']:6d}",
+                      f"{share:5.2f}" if share is not None else f"{'-':>5}", f"{gap:6.3f}" if gap is not None else f"{'-':>6}"]
+        print(" ".join(cells) + f"  {goal}")
     if args.out:
         pathlib.Path(args.out).write_text(json.dumps(dict(model=model_path, env=args.env, view_reach=reach,
-                                                          episodes=episodes), indent=1))
+                                                          walks=walks, values=values, episodes=episodes), indent=1))
 
 
 if __name__ == "__main__":
