@@ -586,8 +586,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
             if learner.get("exploration_run_steps") is not None:
                 raise ValueError("subgoal_learner_kwargs['exploration_run_steps'] applies to the learners of discrete "
                                  "actions: this env's DDPG sub-goal learners explore over their own steps; leave it out")
-            for name in ("carry_relabel", "target_range"):  # what the learners of discrete actions learn with
-                if learner.get(name):
+            for name, unset in (("carry_relabel", 0.0), ("target_range", None)):  # how discrete learners learn
+                if learner.get(name, unset) != unset:
                     raise ValueError(f"subgoal_learner_kwargs['{name}'] applies to the learners of discrete actions: "
                                      f"leave it out for this env's DDPG sub-goal learners")
             for name in ("one_hot", "overview", "view"):  # how the learners read cells (models saved before an option have no key)

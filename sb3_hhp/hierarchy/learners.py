@@ -362,8 +362,8 @@ class StackedDQN:
     :param target_range: ``(low, high)``: every TD target clipped to the returns the learners' rewards allow, as HER
         clips its targets (Andrychowicz et al., 2017). With ``alpha`` 0, eq. 5's rewards (+1 on reaching the sub-goal,
         -1 on ending without it, else 0) put every return in ``[-1, 1]``; noisy values above 1 then no longer feed
-        themselves through the max of the targets, where a walk's first step (picking the key up: exactly 1) lost to
-        going on. None: unclipped
+        themselves through the max of the targets, under which the step that reaches a sub-goal (a reward of exactly
+        1) can lose to going on. None: unclipped
     """
 
     #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
