@@ -288,6 +288,7 @@ def test_the_papers_four_minigrid_tasks_have_entries_that_build(env_id: str) -> 
         assert model.subpolicies.view == 15 and model.subpolicies._overview.shape == (7, 7, 3)
         assert model.subpolicies._template.q_net[0].in_features == (15 * 15 + 7 * 7) * 6
         assert model.goal_space.keep_doors_open and model.success_bonus == "best"
+        assert model.alpha == 0.0 and model.subpolicies.target_range == (-1.0, 1.0)  # eq. 5's returns alone
     if env_id == "MiniGrid-KeyCorridorS4R3-v0":
         # the settings its evaluation seeds learnt with: no door closed to reach "facing a closed door", CSD over the
         # states that could become sub-goals, the learners reading walls, doors, keys, balls, closed, locked as indicators
