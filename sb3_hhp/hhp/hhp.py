@@ -583,18 +583,14 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 action_mask=self.goal_space.action_mask, counterfactual=self.goal_space.carried_counterfactual, **learner,
             )
         else:
-            if learner.get("exploration_run_steps") is not None:
-                raise ValueError("subgoal_learner_kwargs['exploration_run_steps'] applies to the learners of discrete "
-                                 "actions: this env's DDPG sub-goal learners explore over their own steps; leave it out")
-            for name, unset in (("carry_relabel", 0.0), ("target_range", None)):  # how discrete learners learn
+            # the options of the learners of discrete actions, each with the value that leaves it unset (models saved
+            # before an option have no key)
+            for name, unset in (("exploration_run_steps", None), ("carry_relabel", 0.0), ("target_range", None),
+                                ("one_hot", None), ("overview", None), ("view", None)):
                 if learner.get(name, unset) != unset:
-                    raise ValueError(f"subgoal_learner_kwargs['{name}'] applies to the learners of discrete actions: "
-                                     f"leave it out for this env's DDPG sub-goal learners")
-            for name in ("one_hot", "overview", "view"):  # how the learners read cells (models saved before an option have no key)
-                if learner.get(name) is not None:
-                    raise ValueError(f"subgoal_learner_kwargs['{name}'] applies to the learners of discrete actions; "
-                                     f"this env's sub-goal learners are DDPG models that read the whole observation as "
-                                     f"it is: leave {name} out")
+                    raise ValueError(f"subgoal_learner_kwargs['{name}'] applies to the learners of discrete actions; this "
+                                     f"env's sub-goal learners are DDPG models that explore over their own steps and read "
+                                     f"the whole observation as it is: leave {name} out (leave it out for DDPG sub-goals)")
             self.subpolicies = PerGoalLearners(
                 SubpolicySet(obs_space, self.primitive_action_space, policy=self.subpolicy_policy,
                              subpolicy_kwargs=self.subpolicy_kwargs, exploration_steps=learner["exploration_steps"],

@@ -954,8 +954,7 @@ class StackedDQN:
                 y_behaviour = (as_t(batch.behaviour_returns)
                                + as_t(batch.behaviour_discounts) * (1 - as_t(batch.behaviour_dones)) * next_q[:, n:])
                 y = th.maximum(y, y_behaviour)
-            if self.target_range is not None:
-                y = y.clamp(*self.target_range)
+            y = self._in_range(y)
         loss = (weights * F.smooth_l1_loss(q, y, reduction="none")).mean(dim=1)  # (T,): each sub-goal's own loss
         if self._relu_mlp:
             # d loss / d q: the Huber loss's derivative clamp(q - y, -1, 1), weighted, over the batch, at the actions taken
@@ -975,6 +974,10 @@ class StackedDQN:
         np.add.at(self.n_updates, goals, 1)
         self.last_loss = float(loss.mean().detach())
         return self.last_loss
+
+    def _in_range(self, y: th.Tensor) -> th.Tensor:
+        """TD targets ``y`` clipped to ``target_range`` (as they are without one)."""
+        return y if self.target_range is None else y.clamp(*self.target_range)
 
     def _adam_rows(self) -> tuple[list[th.Tensor], ...]:
         """Each sub-goal's row of the parameters, of Adam's two moments and of the step counts (views, updated in
@@ -1253,8 +1256,7 @@ class SharedHeadsDQN(StackedDQN):
                 next_q = target.gather(-1, online.argmax(-1, keepdim=True))[..., 0]
                 y_k = as_t(k_returns) + as_t(k_discounts) * (1 - as_t(k_dones)) * next_q
                 y = y_k if y is None else th.maximum(y, y_k)  # the behaviour's return is a lower bound
-            if self.target_range is not None:
-                y = y.clamp(*self.target_range)
+            y = self._in_range(y)
         q_all = self.network(self._tensor(replay.observations[rows, cols]))  # (B, capacity, A)
         actions = as_t(replay.actions[rows, cols].reshape(batch_size).astype(np.int64))
         q = q_all[:, as_t(goals), :].gather(-1, actions[:, None, None].expand(-1, len(goals), 1))[..., 0].T  # (T, B)
