@@ -379,6 +379,37 @@ def test_with_success_bonus_best_no_question_compares_the_task_solved() -> None:
     assert solved[0] > 0 and solved[1] == 0
 
 
+def test_with_second_unasked_the_selector_reads_which_sub_goals_no_question_named(monkeypatch) -> None:
+    """``query_kwargs["second"] = "unasked"``: each selection is told the sub-goals no earlier question named, the
+    named keys follow the questions asked (and are read back from the store alike); "meta" passes nothing."""
+    model = make_model(EMPTY, query_budget=40, query_kwargs=dict(second="unasked"))
+    assert model.query_selector.second == "unasked"
+    calls, select = [], model.query_selector.select
+
+    def spy(*args, unasked=None, **kwargs):
+        keys = model.subgoal_set.keys
+        calls.append((unasked, {keys[i] for i in range(len(keys)) if unasked is not None and not unasked[i]},
+                      set(model.asked_goal_keys)))
+        return select(*args, unasked=unasked, **kwargs)
+
+    monkeypatch.setattr(model.query_selector, "select", spy)
+    model.learn(3_000)
+    assert model.query_selector.used > 0 and calls
+    for unasked, named_by_flags, named_before in calls:
+        assert unasked is not None and named_by_flags == named_before
+    questions = [model.store.get_query(query_id) for query_id in model.store.asked_ids()]
+    named = {model.subgoals[goal].key for query in questions for goal in (query.goal1, query.goal2)}
+    assert model.asked_goal_keys == named and len(named) >= 2
+    model._asked_goal_keys = None  # read again from the store
+    assert model.asked_goal_keys == named
+    meta = make_model(EMPTY, query_budget=40)
+    seen = []
+    meta_select = meta.query_selector.select
+    monkeypatch.setattr(meta.query_selector, "select", lambda *a, unasked=None, **k: seen.append(unasked) or meta_select(*a, **k))
+    meta.learn(3_000)
+    assert seen and all(flags is None for flags in seen)
+
+
 def test_the_bonus_of_a_sampled_choice_is_cached_until_the_predictor_or_the_subgoals_change(trained: HhP) -> None:
     """The meta-controller's updates read each stored choice's bonus from a cache: equal to a fresh
     ``preference_bonus``, and scored again once the predictor has trained or a row holds a new choice."""

@@ -202,3 +202,31 @@ def test_excluded_pairs_are_never_asked_and_the_next_best_second_choice_is_shown
         selector.refund(1)
     with pytest.raises(ValueError, match="exclude"):
         selector.select(np.array([0.5]), np.array([0]), q_values[:1], exclude=exclude)
+
+
+def test_unasked_second_goal_is_the_best_sub_goal_no_question_named() -> None:
+    """``second="unasked"``: g2 is the meta-controller's best valid, not excluded sub-goal other than g among those no
+    question has named yet; a tuple without one gets the meta-controller's second choice, as with ``"meta"``."""
+    q_values = np.array(
+        [
+            [5.0, 1.0, 3.0, 2.0],  # g = 0; unasked 1 and 3: g2 = 3 (the better of them), not the runner-up 2
+            [5.0, 1.0, 3.0, -np.inf],  # g = 0; 3 is not choosable: g2 = 1
+            [5.0, 1.0, 3.0, 2.0],  # g = 1 (itself unasked, never its own g2), 3 excluded: g2 = 0, the runner-up
+        ]
+    )
+    unasked = np.array([False, True, False, True])
+    exclude = np.zeros((3, 4), dtype=bool)
+    exclude[2, 3] = True
+    goals = np.array([0, 0, 1])
+    unasked_selector = QuerySelector(budget=10, threshold=0.0, second="unasked")
+    assert unasked_selector.select(np.ones(3), goals, q_values, exclude=exclude, unasked=unasked) == [
+        (0, 3), (1, 1), (2, 0)]
+    meta = QuerySelector(budget=10, threshold=0.0)
+    assert meta.select(np.ones(3), goals, q_values, exclude=exclude, unasked=unasked) == [(0, 2), (1, 2), (2, 0)]
+    # without the flags "unasked" is the paper's rule
+    assert QuerySelector(budget=10, threshold=0.0, second="unasked").select(
+        np.ones(3), goals, q_values, exclude=exclude) == [(0, 2), (1, 2), (2, 0)]
+    with pytest.raises(ValueError, match="second must be one of"):
+        QuerySelector(budget=10, second="random")
+    with pytest.raises(ValueError, match="unasked must have shape"):
+        unasked_selector.select(np.ones(3), goals, q_values, unasked=np.ones(3, dtype=bool))

@@ -91,7 +91,13 @@ class BetweenEpisodes:
         if success is not None:  # the task's own goal is judged by the extrinsic reward alone: never in a question
             exclude[:, success] = True
             exclude[goals == success] = True
-        selected = self.query_selector.select(confidences, goals, q_values, num_timesteps=self.num_timesteps, exclude=exclude)
+        unasked = None
+        if self.query_selector.second == "unasked":
+            named = self.asked_goal_keys
+            unasked = np.zeros(q_values.shape[1], dtype=bool)  # the meta-controller's room for more sub-goals: invalid
+            unasked[: len(keys)] = [key not in named for key in keys]
+        selected = self.query_selector.select(confidences, goals, q_values, num_timesteps=self.num_timesteps,
+                                              exclude=exclude, unasked=unasked)
         queries, repeated = [], 0
         for index, second in selected:  # line 26
             signature = question_signature(state_ids[index], keys[goals[index]], keys[second])
@@ -99,6 +105,7 @@ class BetweenEpisodes:
                 repeated += 1
                 continue
             asked.add(signature)
+            self.asked_goal_keys.update((keys[goals[index]], keys[second]))
             query = self._query(trace, states, goals, index, second, unique[index])
             query.info["signature"] = signature
             queries.append(query)
@@ -124,6 +131,17 @@ class BetweenEpisodes:
                     signatures.add(signature)
             self._asked_signatures = signatures
         return self._asked_signatures
+
+    @property
+    def asked_goal_keys(self: Any) -> set:
+        """The keys of the sub-goals that the questions asked so far named, read from the store once per ``learn``."""
+        if getattr(self, "_asked_goal_keys", None) is None:
+            named = set()
+            for query_id in self.store.asked_ids():
+                query = self.store.get_query(query_id)
+                named.update(self.subgoals[goal].key for goal in (query.goal1, query.goal2) if goal < len(self.subgoals))
+            self._asked_goal_keys = named
+        return self._asked_goal_keys
 
     def _query(self: Any, trace: EpisodeTrace, states: np.ndarray, goals: np.ndarray, index: int, second: int,
                choice: int) -> Query:

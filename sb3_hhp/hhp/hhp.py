@@ -85,8 +85,10 @@ def _continuous_actions(env: Union[GymEnv, str]) -> bool:
 
 #: ``query_kwargs``: the query selection (:class:`~sb3_hhp.preferences.query.QuerySelector`): the paper's t_qry
 #: (``threshold``, fixed mode), the pacing ``mode`` ("adaptive" or "fixed"), and the ``horizon`` in primitive steps
-#: over which the adaptive mode paces the budget (None: the ``total_timesteps`` of each ``learn`` call)
-QUERY_DEFAULTS: dict[str, Any] = dict(threshold=0.26, mode="adaptive", horizon=None, quantile_window=2_000)
+#: over which the adaptive mode paces the budget (None: the ``total_timesteps`` of each ``learn`` call), and how the
+#: second sub-goal of a question is chosen (``second``: "meta", the paper's, or "unasked")
+QUERY_DEFAULTS: dict[str, Any] = dict(threshold=0.26, mode="adaptive", horizon=None, quantile_window=2_000,
+                                      second="meta")
 #: ``predictor_kwargs``: the preference predictor's (:class:`~sb3_hhp.preferences.predictor.PreferencePredictor`);
 #: MC-dropout masks and dropout probability of eq. 4, its head and spread (design decisions: the predictor head)
 PREDICTOR_DEFAULTS: dict[str, Any] = dict(hidden_dim=256, dropout=0.1, n_masks=500, head="linear", spread="std")
@@ -288,7 +290,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
         t_qry, fixed mode), ``mode`` ("adaptive" paces the budget over training, design decisions: adaptive
         threshold; "fixed" asks above ``threshold``), ``horizon`` (primitive steps over which the adaptive mode
         paces the budget; default: the ``total_timesteps`` of each ``learn`` call; set it when training in several
-        ``learn`` calls)
+        ``learn`` calls), ``second`` ("meta": the meta-controller's second choice, the paper's; "unasked": its best
+        choosable sub-goal that no question has named yet, where there is one)
     :param predictor_kwargs: arguments of :class:`~sb3_hhp.preferences.predictor.PreferencePredictor` over
         :data:`PREDICTOR_DEFAULTS`: ``n_masks`` (MC-dropout masks of eq. 4), ``dropout`` (its p), ``head`` and
         ``spread`` (design decisions: the predictor head), ``hidden_dim``, ``learning_rate``, ...
@@ -1032,7 +1035,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
     def resume_preferences(self) -> int:
         """Feed the predictor every answered label of the store it has not seen yet, and count every
         question already asked against the budget, so a resumed run loses no label and asks nothing twice."""
-        self._asked_signatures = None  # read again from the store
+        self._asked_signatures = self._asked_goal_keys = None  # read again from the store
         added = 0
         for _, query, answer in self.store.answers_since(0):
             if query.query_id in self.consumed_query_ids:
@@ -1099,7 +1102,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             *super()._excluded_save_params(),
             "options", "subgoal_set", "_last_trace", "rnd", "predictor", "query_selector", "return_normalizer", "subpolicies", "discovery",
             "store", "subgoal_table", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
-            "last_confidences", "consumed_query_ids", "initial_subgoals", "_asked_signatures", "_mask_cache", "_present_cache",
+            "last_confidences", "consumed_query_ids", "initial_subgoals", "_asked_signatures", "_asked_goal_keys", "_mask_cache", "_present_cache",
             "_bonus_key", "_bonus_cache", "_bonus_valid", "_unscored",
             *(["learn"] if "learn" in vars(self) else []),  # a bound learn (sb3_hhp.train --resume) is no data of the model
         ]

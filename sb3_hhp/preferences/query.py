@@ -33,6 +33,8 @@ from typing import Any, Optional
 import numpy as np
 
 MODES = ("fixed", "adaptive")
+#: how the second sub-goal of a question is chosen (:class:`QuerySelector`'s ``second``)
+SECONDS = ("meta", "unasked")
 
 
 class QuerySelector:
@@ -48,6 +50,10 @@ class QuerySelector:
     :param total_timesteps: length of training in primitive steps (> 0), needed by the adaptive
         mode; ``HhP.learn`` sets it through :meth:`set_total_timesteps`
     :param quantile_window: number of recent confidences the adaptive quantile is taken over (>= 1)
+    :param second: how ``g2`` is chosen: "meta" (the paper: the meta-controller's second choice) or "unasked" (the
+        meta-controller's best choosable sub-goal that no question has named yet, where the state has one; else its
+        second choice). A predictor extrapolates its scores to sub-goals no label names, and a sub-goal it scores low
+        is seldom the meta-controller's first or second choice, so "meta" may never ask about it
     """
 
     def __init__(
@@ -57,6 +63,7 @@ class QuerySelector:
         mode: str = "fixed",
         total_timesteps: Optional[int] = None,
         quantile_window: int = 2_000,
+        second: str = "meta",
     ) -> None:
         if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < 0:
             raise ValueError(f"query_budget must be an integer >= 0, got {budget!r}")
@@ -64,11 +71,14 @@ class QuerySelector:
             raise ValueError(f"threshold (t_qry) must be >= 0, got {threshold!r}")
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if second not in SECONDS:
+            raise ValueError(f"second must be one of {SECONDS}, got {second!r}")
         if isinstance(quantile_window, bool) or not isinstance(quantile_window, (int, np.integer)) or quantile_window < 1:
             raise ValueError(f"quantile_window must be an integer >= 1, got {quantile_window!r}")
         self._budget = int(budget)
         self.threshold = float(threshold)
         self.mode = mode
+        self.second = second
         self.quantile_window = int(quantile_window)
         self.total_timesteps: Optional[int] = None
         if total_timesteps is not None:
@@ -118,6 +128,7 @@ class QuerySelector:
         q_values: np.ndarray,
         num_timesteps: int = 0,
         exclude: Optional[np.ndarray] = None,
+        unasked: Optional[np.ndarray] = None,
     ) -> list[tuple[int, int]]:
         """Choose which of an episode's (s, g) tuples to ask about (Algorithm 1, line 26).
 
@@ -128,6 +139,8 @@ class QuerySelector:
         :param num_timesteps: primitive steps done so far (>= 0; used by the adaptive mode)
         :param exclude: optional boolean (N, G): pairs (tuple, g2) never to ask (already asked); ``g2`` is then the
             best sub-goal not excluded, and a tuple with none left is not askable
+        :param unasked: optional boolean (G,): the sub-goals no question has named yet; with ``second="unasked"``,
+            ``g2`` is the best of them by Q-value where a tuple has one (not excluded, valid, other than ``g``)
         :return: ``[(tuple_index, g2), ...]`` in tuple order, ``g2`` the best sub-goal other than
             ``g`` by Q-value; tuples without any other valid sub-goal are never asked. At most
             ``remaining`` entries (``used`` grows by their number).
@@ -165,6 +178,13 @@ class QuerySelector:
                 raise ValueError(f"exclude must have the shape of q_values {q_values.shape}, got {exclude.shape}")
             others[exclude] = -np.inf
         second = others.argmax(axis=1)
+        if self.second == "unasked" and unasked is not None:
+            unasked = np.asarray(unasked, dtype=bool)
+            if unasked.shape != (n_goals,):
+                raise ValueError(f"unasked must have shape ({n_goals},), one flag a sub-goal, got {unasked.shape}")
+            new = np.where(unasked[None, :], others, -np.inf)
+            has_new = new.max(axis=1) > -np.inf
+            second = np.where(has_new, new.argmax(axis=1), second)
         askable = np.flatnonzero(others[np.arange(n), second] > -np.inf)
         c = confidences[askable]
 
