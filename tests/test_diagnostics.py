@@ -12,7 +12,11 @@ import torch as th
 
 from benchmarks.diagnostics.choice_trace import q_readings, target_distance, value_readings, view_reach, walk_readings
 from benchmarks.diagnostics.learner_proxy import make_env, split_at, start_distance, tries
+from benchmarks.diagnostics.question_coverage import coverage
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridGoalSpace, wrap_env
+from sb3_hhp.preferences.store import PreferenceStore
+from sb3_hhp.preferences.types import Label, Query
+from sb3_hhp.subgoal_table import SubgoalTable
 
 EMPTY, KEY, DOOR = OBJECT_TO_IDX["empty"], OBJECT_TO_IDX["key"], OBJECT_TO_IDX["door"]
 LOCKED, OPEN = STATE_TO_IDX["locked"], STATE_TO_IDX["open"]
@@ -114,3 +118,24 @@ def test_the_proxy_splits_its_tries_by_where_the_object_starts() -> None:
     assert split == dict(tries_within=2, reached_within=0.5, tries_beyond=2, reached_beyond=1.0)
     assert split_at([(9, False)], radius=7) == dict(tries_within=0, reached_within=None, tries_beyond=1,
                                                     reached_beyond=0.0)
+
+
+def test_question_coverage_counts_each_sub_goals_questions_and_outcomes() -> None:
+    """Named: every question asked with the sub-goal in it, answered or not; won / lost / equal from the answers;
+    "can't tell" counts as named only."""
+    store = PreferenceStore()
+    image = np.zeros((8, 8, 3), np.uint8)
+    SubgoalTable(store).put([dict(id=goal, image=image, found_at=10 * goal, mean_score=float(goal), name=f"g{goal}")
+                             for goal in range(4)])
+    obs = np.zeros(3, np.float32)
+    for goal1, goal2, label in ((0, 1, Label.FIRST), (1, 0, Label.FIRST), (0, 2, Label.EQUAL), (0, 2, Label.INCOMPARABLE),
+                                (2, 1, None)):
+        query = Query(state=obs, goal1=goal1, goal2=goal2, goal1_obs=obs, goal2_obs=obs)
+        store.add_query(query)
+        if label is not None:
+            store.add_answer(query.query_id, label, "oracle")
+    rows = {row["id"]: row for row in coverage(store)}
+    assert [(rows[g]["named"], rows[g]["won"], rows[g]["lost"], rows[g]["equal"]) for g in range(4)] == [
+        (4, 1, 1, 1), (3, 1, 1, 0), (3, 0, 0, 1), (0, 0, 0, 0)]
+    assert rows[3]["name"] == "g3" and rows[3]["found_at"] == 30 and rows[3]["mean_score"] == 3.0
+

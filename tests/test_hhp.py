@@ -405,7 +405,8 @@ def test_with_second_unasked_the_selector_reads_which_sub_goals_no_question_name
     meta = make_model(EMPTY, query_budget=40)
     seen = []
     meta_select = meta.query_selector.select
-    monkeypatch.setattr(meta.query_selector, "select", lambda *a, unasked=None, **k: seen.append(unasked) or meta_select(*a, **k))
+    monkeypatch.setattr(meta.query_selector, "select",
+                        lambda *a, unasked=None, **k: seen.append(unasked) or meta_select(*a, **k))
     meta.learn(3_000)
     assert seen and all(flags is None for flags in seen)
 
