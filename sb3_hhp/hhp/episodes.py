@@ -138,8 +138,8 @@ class BetweenEpisodes:
         if getattr(self, "_asked_goal_keys", None) is None:
             named = set()
             for query_id in self.store.asked_ids():
-                query = self.store.get_query(query_id)
-                named.update(self.subgoals[goal].key for goal in (query.goal1, query.goal2) if goal < len(self.subgoals))
+                goals = self.store.query_goals(query_id)[:2]  # without decoding the question's arrays
+                named.update(self.subgoals[goal].key for goal in goals if goal < len(self.subgoals))
             self._asked_goal_keys = named
         return self._asked_goal_keys
 
