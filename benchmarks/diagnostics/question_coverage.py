@@ -26,16 +26,12 @@ from sb3_hhp.subgoal_table import SubgoalTable  # noqa: E402
 def coverage(store: PreferenceStore) -> list[dict]:
     """One row per sub-goal of the gallery table: its record (without the image) and its questions' outcomes."""
     named, won, lost, equal = Counter(), Counter(), Counter(), Counter()
-    for query_id in store.asked_ids():
-        goal1, goal2, _ = store.query_goals(query_id)
+    for goal1, goal2, label in store.question_goals():
         named.update((goal1, goal2))
-        answer = store.get_answer(query_id)
-        if answer is None:
-            continue
-        if answer.label == Label.EQUAL:
+        if label == Label.EQUAL:
             equal.update((goal1, goal2))
-        elif answer.label in (Label.FIRST, Label.SECOND):
-            winner, loser = (goal1, goal2) if answer.label == Label.FIRST else (goal2, goal1)
+        elif label in (Label.FIRST, Label.SECOND):
+            winner, loser = (goal1, goal2) if label == Label.FIRST else (goal2, goal1)
             won[winner] += 1
             lost[loser] += 1
     rows = []

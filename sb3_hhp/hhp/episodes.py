@@ -136,11 +136,8 @@ class BetweenEpisodes:
     def asked_goal_keys(self: Any) -> set:
         """The keys of the sub-goals that the questions asked so far named, read from the store once per ``learn``."""
         if getattr(self, "_asked_goal_keys", None) is None:
-            named = set()
-            for query_id in self.store.asked_ids():
-                goals = self.store.query_goals(query_id)[:2]  # without decoding the question's arrays
-                named.update(self.subgoals[goal].key for goal in goals if goal < len(self.subgoals))
-            self._asked_goal_keys = named
+            self._asked_goal_keys = {self.subgoals[goal].key for *goals, _ in self.store.question_goals()
+                                     for goal in goals if goal < len(self.subgoals)}
         return self._asked_goal_keys
 
     def _query(self: Any, trace: EpisodeTrace, states: np.ndarray, goals: np.ndarray, index: int, second: int,

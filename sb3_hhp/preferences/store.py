@@ -385,6 +385,12 @@ class PreferenceStore:
         """Ids of every stored query, answered or not."""
         return {row[0] for row in self._read("SELECT query_id FROM queries")}
 
+    def question_goals(self) -> list[tuple[int, int, Optional[Label]]]:
+        """Every stored query's ``(goal1, goal2, label)``, ``label`` ``None`` while unanswered, in one read and
+        without decoding the queries' arrays."""
+        rows = self._read("SELECT q.goal1, q.goal2, a.label FROM queries q LEFT JOIN answers a ON a.query_id = q.query_id")
+        return [(int(goal1), int(goal2), None if label is None else Label(label)) for goal1, goal2, label in rows]
+
     def answered_ids(self) -> set[str]:
         """Ids of the answered queries."""
         return {row[0] for row in self._read("SELECT query_id FROM answers")}
