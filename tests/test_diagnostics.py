@@ -1,6 +1,7 @@
 """The diagnostics' own arithmetic (benchmarks/diagnostics): where the object a sub-goal faces lies at a choice, and
 what a walk's idle steps and action gaps add up to."""
 
+from collections import Counter
 from types import SimpleNamespace
 
 import gymnasium as gym
@@ -139,3 +140,38 @@ def test_question_coverage_counts_each_sub_goals_questions_and_outcomes() -> Non
         (4, 1, 1, 1), (3, 1, 1, 0), (3, 0, 0, 1), (0, 0, 0, 0)]
     assert rows[3]["name"] == "g3" and rows[3]["found_at"] == 30 and rows[3]["mean_score"] == 3.0
 
+
+
+def test_the_oracles_chooser_takes_the_plans_first_choosable_milestone_not_ruled_out() -> None:
+    """oracle_choices.py: in DoorKey's first state the plan's first milestone among the sub-goals is the walk to the
+    key; ruled out (as predict rules out a sub-goal that just gave up), the plan names no other sub-goal here, and
+    the model's own choice stands (counted as not planned)."""
+    from benchmarks.diagnostics.oracle_choices import oracle_chooser
+    from sb3_hhp import HhP
+    from sb3_hhp.oracles import make_oracle
+
+    env = wrap_env(gym.make("MiniGrid-DoorKey-5x5-v0"))
+    space = MiniGridGoalSpace()
+    given, keys, rng = [], [], np.random.default_rng(0)
+    for seed in range(40):  # observations of distinct keys, one facing the key
+        obs, _ = env.reset(seed=seed)
+        for action in rng.integers(0, 3, size=12):
+            if space.key(obs) not in keys and space.key(obs) != (EMPTY, EMPTY, 0):
+                given.append(obs)
+                keys.append(space.key(obs))
+            obs, *_ = env.step(int(action))
+    assert (EMPTY, KEY, 0) in keys and len(keys) >= 3
+    model = HhP("MlpPolicy", gym.make("MiniGrid-DoorKey-5x5-v0"), discovery="none", subgoals=given, seed=0,
+                buffer_size=500, policy_kwargs=dict(net_arch=[16]))
+    oracle = make_oracle("scripted", model.goal_space, model.primitive_observation_space)
+    obs, _ = env.reset(seed=3)
+    planned: list = []
+    agree = Counter()
+    choose = oracle_chooser(model, oracle, env, planned, agree)
+    walk_to_key = keys.index((EMPTY, KEY, 0))
+    own = np.array([(walk_to_key + 1) % len(keys)])
+    excluded = np.zeros((1, len(model.subgoals)), dtype=bool)  # predict's shape
+    assert choose(obs[None], own, excluded)[0] == walk_to_key and planned == [True] and agree["choices"] == 1
+    excluded[0, walk_to_key] = True
+    assert choose(obs[None], own, excluded)[0] != walk_to_key and planned == [True, False]
+    assert agree["choices"] == 1

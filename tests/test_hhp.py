@@ -411,6 +411,85 @@ def test_with_second_unasked_the_selector_reads_which_sub_goals_no_question_name
     assert seen and all(flags is None for flags in seen)
 
 
+def _eq3_bonus_term(model: HhP, states: np.ndarray) -> np.ndarray:
+    """(1 - beta) * b(s, g) / sigma (eq. 3's bonus term) of every sub-goal, 0 for the head's unused rows, with b the
+    centred bonus as :meth:`HhP.preference_bonus` gives it one sub-goal at a time."""
+    n_goals, n_actions = len(model.subgoals), int(model.action_space.n)
+    bonus = np.zeros((len(states), n_actions))
+    for goal in range(n_goals):
+        bonus[:, goal] = model.preference_bonus(states, np.full(len(states), goal))
+    return (1 - model.beta) * bonus / model.return_normalizer.sigma
+
+
+def test_exact_bonus_adds_eq3s_bonus_term_to_both_networks(trained: HhP, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``exact_bonus``: the Q-values read from either network are its output plus (1 - beta) * b(s, g) / sigma of
+    every sub-goal (the bonus of eq. 3 that the reward of the choice holds); without it, the network's output."""
+    replay = trained.replay_buffer.sample(16)
+    states = replay.observations.cpu().numpy().astype(np.uint8)
+    with th.no_grad():
+        plain = trained._q_values(replay.observations)
+        np.testing.assert_array_equal(plain.numpy(), trained.q_net(replay.observations).numpy())
+        monkeypatch.setattr(trained, "exact_bonus", True)
+        expected = _eq3_bonus_term(trained, states)
+        assert (expected[:, : len(trained.subgoals)] < -1e-3).any()  # the centred bonus is not all 0
+        online = trained._q_values(replay.observations) - trained.q_net(replay.observations)
+        target = (trained._q_values(replay.observations, trained.q_net_target)
+                  - trained.q_net_target(replay.observations))
+    np.testing.assert_allclose(online.numpy(), expected, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(target.numpy(), expected, rtol=1e-4, atol=1e-5)
+
+
+def test_with_exact_bonus_the_target_adds_the_next_states_bonus_and_the_choice_follows_it(
+        trained: HhP, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The TD target is r + discount * (Q_target(s', g*) + bonus(s', g*)), g* the online network's best choosable
+    sub-goal with the bonus added; with the networks' outputs at 0 the greedy choice is the best choosable bonus."""
+    monkeypatch.setattr(trained, "exact_bonus", True)
+    replay = trained.replay_buffer.sample(16)
+    next_states = replay.next_observations.cpu().numpy().astype(np.uint8)
+    rewards = trained._rewards(replay)
+    discounts = replay.discounts if replay.discounts is not None else trained.gamma
+    with th.no_grad():
+        target = trained._target(replay.next_observations, rewards, replay.dones, discounts, True, None).numpy().ravel()
+        bonus = _eq3_bonus_term(trained, next_states)
+        online = trained.q_net(replay.next_observations).numpy() + bonus
+        valued = trained.q_net_target(replay.next_observations).numpy() + bonus
+    mask = np.broadcast_to(trained.action_mask(next_states), online.shape)
+    best = np.where(mask, online, -np.inf).argmax(axis=1)
+    discount = np.broadcast_to(np.asarray(discounts, dtype=np.float64).reshape(-1), (len(best),))
+    expected = (rewards.numpy().ravel()
+                + (1 - replay.dones.numpy().ravel()) * discount * valued[np.arange(len(best)), best])
+    np.testing.assert_allclose(target, expected, rtol=1e-4, atol=1e-5)
+    last = trained.q_net.q_net[-1]
+    saved = [last.weight.detach().clone(), last.bias.detach().clone()]
+    try:
+        with th.no_grad():
+            last.weight.zero_()
+            last.bias.zero_()
+        states = replay.observations.cpu().numpy().astype(np.uint8)
+        scores = np.where(np.broadcast_to(trained.action_mask(states), (len(states), int(trained.action_space.n))),
+                          _eq3_bonus_term(trained, states), -np.inf)
+        chosen = trained.choose_subgoals(states, deterministic=True)
+        np.testing.assert_allclose(scores[np.arange(len(states)), chosen], scores.max(axis=1), atol=1e-6)
+    finally:
+        with th.no_grad():
+            last.weight.copy_(saved[0])
+            last.bias.copy_(saved[1])
+
+
+def test_with_exact_bonus_a_model_learns_saves_and_loads(tmp_path) -> None:
+    """``exact_bonus`` through ``learn`` (the meta-controller's updates read the bonus) and a save: the loaded model
+    keeps the option and chooses as the saved one."""
+    model = make_model(EMPTY, exact_bonus=True)
+    model.learn(1_500)
+    assert len(model.predictor) > 0 and model._n_updates > 0
+    model.save(tmp_path / "exact.zip")
+    loaded = HhP.load(tmp_path / "exact.zip", device="cpu")
+    assert loaded.exact_bonus is True
+    states = observations(EMPTY)
+    np.testing.assert_array_equal(loaded.choose_subgoals(states, deterministic=True),
+                                  model.choose_subgoals(states, deterministic=True))
+
+
 def test_the_bonus_of_a_sampled_choice_is_cached_until_the_predictor_or_the_subgoals_change(trained: HhP) -> None:
     """The meta-controller's updates read each stored choice's bonus from a cache: equal to a fresh
     ``preference_bonus``, and scored again once the predictor has trained or a row holds a new choice."""
@@ -575,6 +654,7 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
         (dict(env=EMPTY, predictor_kwargs=dict(dropout=1.0)), r"dropout'\] must be in \[0, 1\), got 1.0"),
         (dict(env=EMPTY, center_bonus="median"), "center_bonus must be True / 'mean', 'max' or False, got 'median'"),
         (dict(env=EMPTY, success_bonus="neutral"), "success_bonus must be 'predicted' or 'best', got 'neutral'"),
+        (dict(env=EMPTY, exact_bonus="yes"), "exact_bonus must be True or False, got 'yes'"),
         (dict(env=EMPTY, discovery="none"), "subgoals="),
         (dict(env=EMPTY, discovery="everything"), "discovery must be"),
         (dict(env=EMPTY, subgoal_learner_kwargs=dict(share_experience=False, train_shared=True)),

@@ -100,6 +100,9 @@ class DoubleDQN(DQN):
     - ``action_mask(observations)``: the actions allowed in each state, shape ``(B, n_actions)`` (or
       ``(n_actions,)`` for all); default ``valid_actions``. Used by the same three.
     - ``resize_action_space(n_actions)``: grow the discrete action space, keeping old Q-values.
+    - ``_q_offset(observations)``: a known part of the Q-values, ``(B, n_actions)``, added to both networks'
+      outputs wherever Q-values are read (targets, the loss, ``predict``); default ``None`` (nothing added). It is
+      no parameter: the networks learn the rest.
 
     The importance weighting applies whenever the replay buffer is a ``PrioritizedReplayBuffer``.
     """
@@ -249,6 +252,21 @@ class DoubleDQN(DQN):
         """
         return replay_data.rewards
 
+    def _q_offset(self, observations: th.Tensor) -> th.Tensor | None:
+        """
+        A known part of the Q-values of a batch of observations, ``(B, n_actions)``, added to the online and the
+        target network's outputs wherever they are read; ``None`` (the default): nothing is added.
+
+        :param observations: A batch of observations as the networks read them (a tensor on ``self.device``).
+        """
+        return None
+
+    def _q_values(self, observations: th.Tensor, network: th.nn.Module | None = None) -> th.Tensor:
+        """The Q-values of a batch: ``network`` (default the online network) plus :meth:`_q_offset`."""
+        q_values = (self.q_net if network is None else network)(observations)
+        offset = self._q_offset(observations)
+        return q_values if offset is None else q_values + offset
+
     def action_mask(self, observations: np.ndarray | dict[str, np.ndarray]) -> np.ndarray | None:
         """
         The actions allowed in each state of a batch: a boolean array ``(B, n_actions)``, one mask
@@ -303,7 +321,7 @@ class DoubleDQN(DQN):
                         replay_data.behaviour_next_observations, replay_data.behaviour_rewards,
                         replay_data.behaviour_dones, replay_data.behaviour_discounts, state_masks, valid_actions))
 
-            current_q_values = th.gather(self.q_net(replay_data.observations), dim=1, index=replay_data.actions.long())
+            current_q_values = th.gather(self._q_values(replay_data.observations), dim=1, index=replay_data.actions.long())
 
             # Per-sample Huber loss, weighted by the importance-sampling weights under PER
             elementwise_loss = F.smooth_l1_loss(current_q_values, target_q_values, reduction="none")
@@ -344,9 +362,12 @@ class DoubleDQN(DQN):
             # network, so the same one): both networks read one extraction
             features = online.extract_features(next_obs, online.features_extractor)
             next_q_target, next_q_online = target.q_net(features), online.q_net(features)
+            offset = self._q_offset(next_obs)
+            if offset is not None:
+                next_q_target, next_q_online = next_q_target + offset, next_q_online + offset
         else:
-            next_q_target = target(next_obs)
-            next_q_online = online(next_obs) if self.double_q else next_q_target
+            next_q_target = self._q_values(next_obs, target)
+            next_q_online = self._q_values(next_obs, online) if self.double_q else next_q_target
         return double_q_target(next_q_online, next_q_target, rewards, dones, discounts, valid_actions=valid_actions)
 
     # ------------------------------------------------------- action selection
@@ -373,7 +394,7 @@ class DoubleDQN(DQN):
         else:
             batch = observation if vectorized else np.asarray(observation)[None]
         mask = self.action_mask(batch)
-        if mask is None:
+        if mask is None and type(self)._q_offset is DoubleDQN._q_offset:
             return super().predict(observation, state, episode_start, deterministic)
         if not deterministic and np.random.rand() < self.exploration_rate:
             if vectorized:
@@ -383,8 +404,9 @@ class DoubleDQN(DQN):
         self.policy.set_training_mode(False)
         obs_tensor, vectorized = self.policy.obs_to_tensor(observation)
         with th.no_grad():
-            q_values = self.q_net(obs_tensor)
-        q_values = q_values.masked_fill(~th.as_tensor(mask, device=q_values.device), -th.inf)
+            q_values = self._q_values(obs_tensor)
+        if mask is not None:
+            q_values = q_values.masked_fill(~th.as_tensor(mask, device=q_values.device), -th.inf)
         actions = q_values.argmax(dim=1).cpu().numpy() + int(self.action_space.start)  # type: ignore[attr-defined]
         if not vectorized:
             actions = actions.squeeze(axis=0)

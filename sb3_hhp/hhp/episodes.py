@@ -80,7 +80,7 @@ class BetweenEpisodes:
         confidences = self.predictor.confidence(inputs, self.predictor_inputs(goal_obs[goals]))  # line 25, eq. 4
         self.last_confidences = confidences
         with th.no_grad():
-            q_values = self.q_net(self.policy.obs_to_tensor(states)[0]).cpu().numpy()
+            q_values = self._q_values(self.policy.obs_to_tensor(states)[0]).cpu().numpy()
         q_values[~np.broadcast_to(self.action_mask(states), q_values.shape)] = -np.inf  # g2 among the choosable sub-goals
         asked = self.asked_signatures
         exclude = np.zeros(q_values.shape, dtype=bool)

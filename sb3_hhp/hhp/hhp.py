@@ -261,6 +261,11 @@ class HhP(BetweenEpisodes, DoubleDQN):
         barely grows with the number of sub-goals); see the README's Design
     :param center_bonus: centre the preference bonus over the sub-goals of each state: True or "mean" subtracts
         their mean, "max" the best choosable one's score, so that no choice is paid (see the README's Design)
+    :param exact_bonus: the meta-controller's Q-value of a choice is its preference bonus (eq. 3's
+        ``(1 - beta) * b / sigma``, computed by the predictor when the choice is made or replayed) plus what its
+        network learns, the value of what follows; False (default): the network learns both, as in the paper. The
+        reward and its fixed point are the same; the network no longer lags behind a bonus it is told (see the
+        README's Design)
     :param success_bonus: the preference bonus of choosing the task's own goal ("task solved",
         :data:`~sb3_hhp.goals.SUCCESS_KEY`): "predicted" (default: the predictor's, as any sub-goal's) or "best" (the
         state's best choosable score: the extrinsic reward alone judges that choice, and no question compares it;
@@ -368,6 +373,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         subgoal_capacity: int = 16,
         subgoal_learner: str = "stacked",
         center_bonus: Union[bool, str] = "max",
+        exact_bonus: bool = False,
         success_bonus: str = "predicted",
         mask_subgoals: bool = True,
         break_cycles: bool = True,
@@ -424,6 +430,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
             raise ValueError(f"meta_input must be 'auto', 'features' or 'observation', got {meta_input!r}")
         if center_bonus not in (True, False, "mean", "max"):
             raise ValueError(f"center_bonus must be True / 'mean', 'max' or False, got {center_bonus!r}")
+        if not isinstance(exact_bonus, bool):
+            raise ValueError(f"exact_bonus must be True or False, got {exact_bonus!r}")
         if success_bonus not in ("predicted", "best"):
             raise ValueError(f"success_bonus must be 'predicted' or 'best', got {success_bonus!r}")
         self.query_kwargs = _grouped("query_kwargs", query_kwargs)
@@ -453,6 +461,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         self.oracle_kwargs = dict(oracle_kwargs or {})
         self.n_opt = n_opt
         self.center_bonus = center_bonus
+        self.exact_bonus = exact_bonus
         self.success_bonus = success_bonus
         self.mask_subgoals = mask_subgoals
         self.break_cycles = bool(break_cycles)
@@ -764,16 +773,21 @@ class HhP(BetweenEpisodes, DoubleDQN):
     def preference_bonus(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """The preference bonus b = p_hat(s, g) (Algorithm 1 line 12), centred over the sub-goals when
         ``center_bonus``: b(s, g) - mean_g' p_hat(s, g') (True or "mean"), or b(s, g) - max_g' p_hat(s, g') over
-        the sub-goals choosable in s ("max": never positive). Bradley-Terry (eq. 2) fixes scores only up to a
+        the sub-goals choosable in s and g ("max": never positive). Bradley-Terry (eq. 2) fixes scores only up to a
         per-state constant, so the uncentred level is arbitrary shaping that can pay for dawdling. With
         ``success_bonus="best"`` the task's own goal scores as the best of the other sub-goals choosable in s."""
+        if not self.center_bonus and self.success_bonus != "best":
+            return self.predictor.score(self.predictor_inputs(states), self.predictor_inputs(self.goal_obs)[goals])
+        return self.bonus_matrix(states)[np.arange(len(states)), goals]
+
+    def bonus_matrix(self, states: np.ndarray) -> np.ndarray:
+        """:meth:`preference_bonus` of every sub-goal in each state, ``(N, n_sub-goals)``; under "max" centring a
+        sub-goal not choosable in s and scored above every choosable one gets 0, as it would chosen."""
         success = self.success_goal if self.success_bonus == "best" else None
         mask = self.action_mask(states) if self.center_bonus == "max" or success is not None else None
-        goal_obs, states = self.predictor_inputs(self.goal_obs), self.predictor_inputs(states)
-        if not self.center_bonus and success is None:
-            return self.predictor.score(states, goal_obs[goals])
-        n_goals, n_states = len(goal_obs), len(states)
-        scores = self.predictor.score_matrix(states, goal_obs)  # (n_states, n_goals)
+        goal_obs, inputs = self.predictor_inputs(self.goal_obs), self.predictor_inputs(states)
+        n_goals, n_states = len(goal_obs), len(inputs)
+        scores = self.predictor.score_matrix(inputs, goal_obs)  # (n_states, n_goals)
         choosable = (np.ones_like(scores, dtype=bool) if mask is None
                      else np.broadcast_to(mask, (n_states, mask.shape[-1]))[:, :n_goals])
         if success is not None:  # the best other choosable score (the success's own where it is the only choice)
@@ -781,11 +795,22 @@ class HhP(BetweenEpisodes, DoubleDQN):
             best_other = np.where(others, scores, -np.inf).max(axis=1)
             scores[:, success] = np.where(np.isfinite(best_other), best_other, scores[:, success])
         if not self.center_bonus:
-            return scores[np.arange(n_states), goals]
+            return scores
         if self.center_bonus == "max":
-            best = np.where(choosable | (np.arange(n_goals) == np.asarray(goals)[:, None]), scores, -np.inf).max(axis=1)
-            return scores[np.arange(n_states), goals] - best
-        return scores[np.arange(n_states), goals] - scores.mean(axis=1)
+            best = np.where(choosable, scores, -np.inf).max(axis=1, keepdims=True)
+            return np.minimum(scores - np.where(np.isfinite(best), best, scores), 0.0)
+        return scores - scores.mean(axis=1, keepdims=True)
+
+    def _q_offset(self, observations: th.Tensor) -> Optional[th.Tensor]:
+        """With ``exact_bonus``: eq. 3's bonus term ``(1 - beta) * b(s, g) / sigma`` of every sub-goal, the part of the
+        meta-controller's Q-values that the predictor computes (0 for the head's unused rows); else None."""
+        if not self.exact_bonus or not self.use_preferences or len(self.predictor) == 0 or not self.subgoals:
+            return None
+        states = observations.cpu().numpy().astype(self.primitive_observation_space.dtype)
+        bonus = np.zeros((len(states), int(self.action_space.n)), dtype=np.float32)
+        bonus[:, : len(self.subgoals)] = self.bonus_matrix(states)
+        bonus_t = th.as_tensor(bonus, device=observations.device)
+        return meta_reward(th.zeros_like(bonus_t), bonus_t, sigma=self.return_normalizer.sigma, beta=self.beta)
 
     @property
     def success_goal(self) -> Optional[int]:
@@ -994,7 +1019,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
         if not len(rows):
             return chosen
         with th.no_grad():
-            q_values = self.q_net(self.policy.obs_to_tensor(batch[rows])[0]).cpu().numpy()[:, : excluded.shape[1]]
+            q_values = self._q_values(self.policy.obs_to_tensor(batch[rows])[0]).cpu().numpy()[:, : excluded.shape[1]]
         mask = self.action_mask(batch[rows])
         if mask is not None:  # one row per state, or one row for all (mask_subgoals=False)
             q_values[~np.broadcast_to(mask, (len(rows), mask.shape[-1]))[:, : excluded.shape[1]]] = -np.inf
