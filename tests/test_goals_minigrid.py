@@ -12,7 +12,8 @@ from minigrid.core.constants import COLOR_TO_IDX, COLORS, DIR_TO_VEC, OBJECT_TO_
 from minigrid.core.world_object import Ball, Key, Wall
 
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
-from sb3_hhp.goals.minigrid import BLOCKS, GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, NO_GOAL_SQUARE, OPEN_DOORS
+from sb3_hhp.goals.minigrid import (BLOCKS, GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, N_OBJECTS, N_STATES, NO_GOAL_SQUARE,
+                                    OPEN_DOORS)
 from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query, scripted
 from sb3_hhp.oracles.registry import make_oracle
 from sb3_hhp.oracles.scripted import plan_keys, plan_steps
@@ -913,6 +914,32 @@ def test_mark_blockers_tells_a_ball_in_the_way_from_one_moved_aside() -> None:
         assert space.key(obs) == keys[0]
         assert all(len(key) < 3 or key[2] != BLOCKS for key in plan_keys(plain.privileged(env), plain))
     assert make_oracle("scripted", space, env.observation_space).goal_space.mark_blockers
+    env.close()
+
+
+def test_count_blockers_counts_the_objects_in_the_way_in_the_features() -> None:
+    """``count_blockers``: the features end their flags with a one-hot of how many objects block the way (0, 1, 2 or
+    more), here ObstructedMaze-1Q's two balls in front of its locked doors, then one, then none; keys are unchanged."""
+    space = make_goal_space("minigrid_open_doors_blockers_counted", wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1")))
+    assert space.count_blockers and space.mark_blockers and space.keep_doors_open
+    marked = MiniGridGoalSpace(keep_doors_open=True, mark_blockers=True)
+    env = wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1"))
+    env.reset(seed=1)
+    base = env.unwrapped
+    balls = [(x, y) for x in range(base.width) for y in range(base.height)
+             if base.grid.get(x, y) is not None and base.grid.get(x, y).type == "ball" and base.grid.get(x, y) is not base.obj]
+    assert len(balls) == 2
+    states = [env.observation(None)]
+    for cell in balls:
+        base.grid.set(*cell, None)
+        states.append(env.observation(None))
+    features = space.features(np.stack(states))
+    assert features.shape[1] == marked.features(states[0]).shape[1] + 3
+    n_flags = features.shape[1] - N_OBJECTS * N_STATES  # the counts' one-hot is the flags' last part
+    counts = features[:, n_flags - 3: n_flags]
+    np.testing.assert_array_equal(counts, np.eye(3)[[2, 1, 0]])
+    np.testing.assert_array_equal(np.delete(features, np.arange(n_flags - 3, n_flags), axis=1), marked.features(np.stack(states)))
+    assert [space.key(state) for state in states] == [marked.key(state) for state in states]
     env.close()
 
 

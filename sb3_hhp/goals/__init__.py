@@ -18,6 +18,8 @@ NAMED_GOAL_SPACES = {
     "minigrid_count_doors": lambda: MiniGridGoalSpace(keep_doors_open=True, count_open_doors=True),
     "minigrid_color_open_doors": lambda: MiniGridGoalSpace(use_color=True, keep_doors_open=True),
     "minigrid_open_doors_blockers": lambda: MiniGridGoalSpace(keep_doors_open=True, mark_blockers=True),
+    "minigrid_open_doors_blockers_counted": lambda: MiniGridGoalSpace(keep_doors_open=True, mark_blockers=True,
+                                                                      count_blockers=True),
 }
 
 

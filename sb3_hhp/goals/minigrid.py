@@ -55,6 +55,9 @@ OPEN_DOORS = "open doors"
 BLOCKS = 3
 #: with ``count_open_doors``, the features tell 0 .. MAX_COUNTED_DOORS - 1 open doors apart (more count as the last)
 MAX_COUNTED_DOORS = 8
+#: with ``count_blockers``, the features' count of objects that block the way stops here (its last value: this many
+#: less one, or more)
+MAX_COUNTED_BLOCKERS = 3
 MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
 N_OBJECTS, N_COLORS, N_STATES = len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE_TO_IDX)
 #: the frame drawn around the cells a sub-goal concerns (a colour MiniGrid's objects never have)
@@ -233,15 +236,20 @@ class MiniGridGoalSpace(GoalSpace):
         in front of a door is then another sub-goal than the ball moved aside (ObstructedMaze, where the learner of
         "facing a ball", asked after the blocking ball was picked up, put it back on its cell, its quickest way;
         benchmarks/README.md)
+    :param count_blockers: the features (what the predictor, and with ``meta_input`` features the meta-controller,
+        read) also hold how many objects on the canvas block the way (0, 1, 2 or more; :func:`blockers`): whether the
+        key in hand goes to its door or is put down to move a ball first depends on it (ObstructedMaze,
+        benchmarks/README.md). Keys are unchanged
     """
 
     name = "minigrid"
     keep_doors_open = False  # what a goal space pickled before the options reads
     count_open_doors = False
     mark_blockers = False
+    count_blockers = False
 
     def __init__(self, use_color: bool = False, tile_size: int = 16, keep_doors_open: bool = False,
-                 count_open_doors: bool = False, mark_blockers: bool = False) -> None:
+                 count_open_doors: bool = False, mark_blockers: bool = False, count_blockers: bool = False) -> None:
         if tile_size < 1:
             raise ValueError(f"tile_size must be >= 1, got {tile_size}")
         self.use_color = use_color
@@ -249,6 +257,7 @@ class MiniGridGoalSpace(GoalSpace):
         self.keep_doors_open = bool(keep_doors_open)
         self.count_open_doors = bool(count_open_doors)
         self.mark_blockers = bool(mark_blockers)
+        self.count_blockers = bool(count_blockers)
 
     def action_mask(self, obs: np.ndarray) -> Optional[np.ndarray]:
         """With ``keep_doors_open``: every MiniGrid action but ``toggle`` in front of an open door (which would close it)."""
@@ -438,9 +447,10 @@ class MiniGridGoalSpace(GoalSpace):
         """What the preference predictor reads: one-hots of the carried object, the object in front and its
         state (and, with ``use_color``, both colours), then which (object, state) pairs are present anywhere
         in the grid (a locked door, an open door, a key on the floor, ...); before those, with ``count_open_doors``,
-        a one-hot of how many doors are open and, with ``mark_blockers``, one of whether the object in front blocks
-        the way (:func:`blockers`). Positions are left out, so the description recurs across layouts and a hundred
-        labels can teach a ranking of sub-goals that holds in every layout."""
+        a one-hot of how many doors are open, with ``mark_blockers`` one of whether the object in front blocks the way
+        (:func:`blockers`), and with ``count_blockers`` one of how many objects block it. Positions are left out, so
+        the description recurs across layouts and a hundred labels can teach a ranking of sub-goals that holds in
+        every layout."""
         batch = np.asarray(obs).reshape(-1, *np.shape(obs)[-3:]).astype(np.int64)
         center, rows = batch.shape[1] // 2, np.arange(len(batch))
         objects = np.clip(batch[..., 0], 0, N_OBJECTS - 1)
@@ -455,9 +465,13 @@ class MiniGridGoalSpace(GoalSpace):
             parts += [(colors[:, center, center], N_COLORS), (colors[:, center, center - 1], N_COLORS)]
         if self.count_open_doors:  # how many doors are open, the last value for MAX_COUNTED_DOORS - 1 or more
             parts.append((np.minimum(open_doors(batch), MAX_COUNTED_DOORS - 1), MAX_COUNTED_DOORS))
-        if self.mark_blockers:  # whether the object in front blocks the way
-            blocks = blockers(batch[..., 0], np.full((len(batch), 2), center))[:, center, center - 1]
-            parts.append((blocks.astype(np.int64), 2))
+        if self.mark_blockers or self.count_blockers:
+            blocking = blockers(batch[..., 0], np.full((len(batch), 2), center))
+            if self.mark_blockers:  # whether the object in front blocks the way
+                parts.append((blocking[:, center, center - 1].astype(np.int64), 2))
+            if self.count_blockers:  # how many objects block the way, anywhere
+                counts = np.count_nonzero(blocking, axis=(1, 2))
+                parts.append((np.minimum(counts, MAX_COUNTED_BLOCKERS - 1), MAX_COUNTED_BLOCKERS))
         size = sum(n for _, n in parts) + N_OBJECTS * N_STATES
         out = np.zeros((len(batch), size), dtype=np.float32)
         offset = 0
