@@ -782,7 +782,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
 
     def bonus_matrix(self, states: np.ndarray) -> np.ndarray:
         """:meth:`preference_bonus` of every sub-goal in each state, ``(N, n_sub-goals)``; under "max" centring a
-        sub-goal not choosable in s and scored above every choosable one gets 0, as it would chosen."""
+        sub-goal not choosable in s and scored above every choosable one gets 0, as it would if chosen."""
         success = self.success_goal if self.success_bonus == "best" else None
         mask = self.action_mask(states) if self.center_bonus == "max" or success is not None else None
         goal_obs, inputs = self.predictor_inputs(self.goal_obs), self.predictor_inputs(states)
