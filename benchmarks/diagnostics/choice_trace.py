@@ -28,7 +28,7 @@ from typing import Any, Optional
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
-from benchmarks.diagnostics.key_skills import newest_checkpoint  # noqa: E402
+from benchmarks.diagnostics.key_skills import model_file  # noqa: E402
 from sb3_hhp import HhP  # noqa: E402
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridGoalSpace, register_minigrid_tasks, wrap_env  # noqa: E402
 from sb3_hhp.goals.minigrid import INTERACTIVE  # noqa: E402
@@ -190,8 +190,7 @@ def main() -> None:
     parser.add_argument("--load-options", type=json.loads, default={},
                         help="HhP.load options as a JSON object, e.g. '{\"break_cycles\": false}' (plain greedy)")
     args = parser.parse_args()
-    path = pathlib.Path(args.model)
-    model_path = str(path) if path.suffix == ".zip" else newest_checkpoint(str(path))[0]
+    model_path = model_file(args.model)
     register_minigrid_tasks()
     model = HhP.load(model_path, device="cpu", **args.load_options)
     env = wrap_env(gym.make(args.env))

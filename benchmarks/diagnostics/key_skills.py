@@ -48,6 +48,12 @@ def newest_checkpoint(run: str) -> tuple[str, int, str]:
     return checkpoint["model"], checkpoint["timesteps"], checkpoint["replay"]
 
 
+def model_file(model: str) -> str:
+    """A diagnostic's model argument as a file: a ``.zip`` as given, else a run folder's newest checkpoint's model."""
+    path = pathlib.Path(model)
+    return str(path) if path.suffix == ".zip" else newest_checkpoint(str(path))[0]
+
+
 def key_cell(base: Any) -> tuple[int, int]:
     """The cell of the key in an unwrapped MiniGrid env's grid."""
     return next((i, j) for i in range(base.grid.width) for j in range(base.grid.height)

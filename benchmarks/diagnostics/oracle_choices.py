@@ -28,7 +28,7 @@ from typing import Any, Callable
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
-from benchmarks.diagnostics.key_skills import newest_checkpoint  # noqa: E402
+from benchmarks.diagnostics.key_skills import model_file  # noqa: E402
 from sb3_hhp import HhP  # noqa: E402
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
 from sb3_hhp.goals.minigrid import EMPTY  # noqa: E402
@@ -124,8 +124,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    path = pathlib.Path(args.model)
-    model_path = str(path) if path.suffix == ".zip" else newest_checkpoint(str(path))[0]
+    model_path = model_file(args.model)
     register_minigrid_tasks()
     model = HhP.load(model_path, device="cpu")
     if model.goal_space.name != "minigrid":
