@@ -175,3 +175,22 @@ def test_the_oracles_chooser_takes_the_plans_first_choosable_milestone_not_ruled
     excluded[0, walk_to_key] = True
     assert choose(obs[None], own, excluded)[0] != walk_to_key and planned == [True, False]
     assert agree["choices"] == 1
+
+
+def test_the_feature_ceiling_counts_per_alike_input_the_most_often_best_sub_goal() -> None:
+    """oracle_choices.py: choices whose inputs read alike (same bytes, same choosable sub-goals) can be matched at most
+    as often as their most often best sub-goal; a tie on the plan counts for either sub-goal; inputs that differ, or
+    whose choosable sub-goals differ, are groups of their own."""
+    from benchmarks.diagnostics.oracle_choices import feature_ceiling
+
+    def record(reads: bytes, best: tuple, choosable: tuple = (0, 1, 2), state: str = "s") -> dict:
+        return dict(reads=reads, choosable=choosable, best=best, state=state)
+
+    records = [record(b"a", (0,)), record(b"a", (0,)), record(b"a", (1,), state="t"),  # alike: 2 of 3 at best
+               record(b"a", (1,), choosable=(1, 2)),  # other choosable sub-goals: its own group
+               record(b"b", (2,)), record(b"b", (1, 2)),  # the tie counts for 2: both matched
+               record(b"c", (0,)), record(b"c", (1,))]  # 1 of 2
+    result = feature_ceiling(records, describe=lambda goal: f"g{goal}")
+    assert (result["choices"], result["groups"], result["ceiling"]) == (8, 4, 2 + 1 + 2 + 1)
+    assert [(c["choices"], c["matched"]) for c in result["conflicts"]] == [(3, 2), (2, 1)]
+    assert result["conflicts"][0]["states"] == ["s", "t"] and result["conflicts"][0]["plan"] == {"g0": 2, "g1": 1}

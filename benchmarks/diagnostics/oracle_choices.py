@@ -23,7 +23,7 @@ import json
 import pathlib
 import sys
 from collections import Counter
-from typing import Any, Callable
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -38,14 +38,17 @@ from sb3_hhp.oracles import make_oracle  # noqa: E402
 import gymnasium as gym  # noqa: E402
 
 
-def oracle_chooser(model: HhP, oracle: Any, env: gym.Env, planned: list, agree: Counter) -> Callable:
+def oracle_chooser(model: HhP, oracle: Any, env: gym.Env, planned: list, agree: Counter,
+                   records: Optional[list] = None) -> Callable:
     """A stand-in for ``model._other_choices`` (where ``predict`` settles each greedy choice, ruling out the
     sub-goal that just gave up and, with ``break_cycles``, those chosen before in the same observation): the
     first milestone of the oracle's plan from the env's state among the choosable sub-goals not ruled out; the
     model's own choice where the plan names none of them. Appends to ``planned`` whether the plan chose, and counts
     in ``agree`` the plan's choices (``choices``) and those the meta-controller's choice (``meta``) and the
     predictor's best-scored sub-goal (``predictor``), among the same ones, would have matched (a tie on the plan
-    counts)."""
+    counts); appends to ``records`` (where given), for each choice the plan made, what the predictor reads of the
+    state (its bytes, and as an array), the plan's ranks of every sub-goal (inf: not choosable), the choosable
+    sub-goals, the plan's best ones and the state's description (:func:`feature_ceiling` reads them)."""
     keys = [goal.key for goal in model.subgoals]
 
     def choose(batch: np.ndarray, chosen: np.ndarray, excluded: np.ndarray) -> np.ndarray:
@@ -65,9 +68,39 @@ def oracle_chooser(model: HhP, oracle: Any, env: gym.Env, planned: list, agree: 
             agree["meta"] += int(ranks[own[0]] == ranks.min())
             agree["predictor"] += int(ranks[scores.argmax()] == ranks.min())
             agree["choices"] += 1
+            if records is not None:
+                reads = model.predictor_inputs(batch)[0]
+                records.append(dict(reads=reads.tobytes(), inputs=reads, ranks=ranks.copy(),
+                                    choosable=tuple(np.flatnonzero(np.isfinite(ranks)).tolist()),
+                                    best=tuple(np.flatnonzero(ranks == ranks.min()).tolist()),
+                                    state=model.goal_space.describe(model.goal_space.key(batch[0]))))
         return np.array([ranks.argmin()]) if planned[-1] else own
 
     return choose
+
+
+def feature_ceiling(records: list, describe: Callable[[int], str] = str, top: int = 10) -> dict:
+    """The most of the plan's choices ``records`` (:func:`oracle_chooser`'s) that any chooser reading only what the
+    predictor reads could match: choices whose state reads alike and whose choosable sub-goals are the same must get
+    the same sub-goal, so each such group is matched at most as often as its most often best sub-goal is best. Below
+    1, the features cannot tell apart states where the plan chooses differently (no label can mend it); near 1 and
+    the predictor far below it, the labels (or the predictor's generalisation) are what is missing. Also the
+    ``top`` groups that lose the most, with the states they held and the plan's choices there (``describe``
+    names a sub-goal index)."""
+    groups: dict = {}
+    for record in records:
+        groups.setdefault((record["reads"], record["choosable"]), []).append(record)
+    matched, conflicts = 0, []
+    for group in groups.values():
+        best = Counter(goal for record in group for goal in record["best"])
+        most = best.most_common(1)[0][1]
+        matched += most
+        if most < len(group):
+            plans = Counter(" / ".join(describe(goal) for goal in record["best"]) for record in group)
+            conflicts.append(dict(choices=len(group), matched=most, states=sorted({r["state"] for r in group}),
+                                  plan=dict(plans.most_common())))
+    conflicts.sort(key=lambda c: c["matched"] - c["choices"])
+    return dict(choices=len(records), groups=len(groups), ceiling=matched, conflicts=conflicts[:top])
 
 
 def predictor_chooser(model: HhP, planned: list) -> Callable:
@@ -135,8 +168,9 @@ def main() -> None:
     planned: list = []
     own = [play(model, env, args.seed + i, deterministic, planned)["solved"] for i in range(args.episodes)]
     agree: Counter = Counter()
+    records: list = []
     if args.chooser == "oracle":
-        model._other_choices = oracle_chooser(model, oracle, env, planned, agree)
+        model._other_choices = oracle_chooser(model, oracle, env, planned, agree, records)
     else:
         model._other_choices = predictor_chooser(model, planned)
     episodes = [play(model, env, args.seed + i, deterministic, planned) for i in range(args.episodes)]
@@ -155,13 +189,22 @@ def main() -> None:
     if args.chooser == "oracle":
         print(f"of the {agree['choices']} choices the plan made, the meta-controller would have made the same in "
               f"{agree['meta']}, the predictor's best score in {agree['predictor']}")
+        describe = lambda goal: model.goal_space.describe(model.subgoals[goal].key)  # noqa: E731
+        ceiling = feature_ceiling(records, describe)
+        print(f"the most any chooser reading the predictor's input could match: {ceiling['ceiling']} of "
+              f"{ceiling['choices']} ({ceiling['groups']} distinct inputs with their choosable sub-goals); where "
+              f"states that read alike got different plan choices:")
+        for conflict in ceiling["conflicts"]:
+            print(f"  {conflict['matched']} of {conflict['choices']} at best; states {conflict['states']}; "
+                  f"plan {conflict['plan']}")
     print(f"{'chosen':>7} {'reached':>7}  in state -> sub-goal (the second play's choices)")
     for (state_key, goal), count in chosen.most_common(30):
         print(f"{count:7d} {reached[state_key, goal]:7d}  {state_key} -> {goal}")
     if args.out:
         pathlib.Path(args.out).write_text(json.dumps(dict(
-            model=model_path, env=args.env, deterministic=deterministic, seed=args.seed, chooser=args.chooser, solved_chooser=solved,
-            solved_model=int(sum(own)), agreement=dict(agree), episodes=episodes), indent=1))
+            model=model_path, env=args.env, deterministic=deterministic, seed=args.seed, chooser=args.chooser,
+            solved_chooser=solved, solved_model=int(sum(own)), agreement=dict(agree),
+            ceiling=ceiling if args.chooser == "oracle" else None, episodes=episodes), indent=1))
 
 
 if __name__ == "__main__":
