@@ -194,3 +194,57 @@ def test_the_feature_ceiling_counts_per_alike_input_the_most_often_best_sub_goal
     assert (result["choices"], result["groups"], result["ceiling"]) == (8, 4, 2 + 1 + 2 + 1)
     assert [(c["choices"], c["matched"]) for c in result["conflicts"]] == [(3, 2), (2, 1)]
     assert result["conflicts"][0]["states"] == ["s", "t"] and result["conflicts"][0]["plan"] == {"g0": 2, "g1": 1}
+
+
+def test_placement_answers_by_plan_rank_and_names_each_rules_pair() -> None:
+    """predictor_placement.py: the oracle prefers the sub-goal earlier in its plan and ties teach nothing; ``plan``
+    names the plan's choice against another choosable sub-goal, ``top2`` the predictor's two best choosable ones."""
+    from benchmarks.diagnostics.predictor_placement import answer, pair_of
+    from sb3_hhp.preferences.types import Label
+
+    ranks = np.array([0.0, 2.0, 2.0, np.inf])
+    assert (answer(ranks, 0, 1), answer(ranks, 1, 0), answer(ranks, 1, 2)) == (Label.FIRST, Label.SECOND,
+                                                                                 Label.INCOMPARABLE)
+    record = dict(choosable=(0, 1, 2), best=(0,), ranks=ranks)
+    rng = np.random.default_rng(0)
+    pairs = {pair_of("plan", record, None, rng) for _ in range(20)}
+    assert pairs == {(0, 1), (0, 2)}
+    scores = lambda _: np.array([0.1, 0.9, 0.5, 2.0])  # noqa: E731  (sub-goal 3, not choosable, scores best)
+    assert pair_of("top2", record, scores, rng) == (1, 2)
+    assert all(len(set(pair_of("random", record, None, rng)) & {0, 1, 2}) == 2 for _ in range(10))
+
+
+def test_placement_teaches_a_fresh_predictor_the_plans_choice() -> None:
+    """predictor_placement.py: with the plan always preferring sub-goal 0, a fresh predictor trained after every label
+    comes to choose it in unseen states (agreement 1), and its agreement is counted among the choosable sub-goals."""
+    from gymnasium import spaces
+
+    from benchmarks.diagnostics.predictor_placement import agreement, placement_curve
+    from sb3_hhp.preferences.predictor import PreferencePredictor
+
+    rng = np.random.default_rng(1)
+    goals = np.eye(3, dtype=np.float32)
+    ranks = np.array([0.0, 1.0, 2.0])
+
+    def records(n: int) -> list[dict]:
+        return [dict(inputs=rng.random(3).astype(np.float32), choosable=(0, 1, 2), best=(0,), ranks=ranks)
+                for _ in range(n)]
+
+    space = spaces.Box(-np.inf, np.inf, (3,), np.float32)
+    make = lambda: PreferencePredictor(space, hidden_dim=16, min_updates=30, buffer_size=30, seed=0)  # noqa: E731
+    threads = th.get_num_threads()
+    th.set_num_threads(1)  # thirty small trainings: more threads only contend with whatever else runs
+    try:
+        points = placement_curve(make, goals, records(40), records(20), "random", [1, 30], seed=0)
+    finally:
+        th.set_num_threads(threads)
+    assert [p["labels"] for p in points] == [1, 30] and points[1]["taught"] == 30
+    assert points[1]["test"] == 1.0
+
+    class Fixed:  # scores sub-goal 2 best: right only where 0 is not choosable and 2 is best
+        @staticmethod
+        def score_matrix(states: np.ndarray, _goals: np.ndarray) -> np.ndarray:
+            return np.tile([0.0, 1.0, 2.0], (len(states), 1))
+
+    cases = [dict(inputs=np.zeros(3), choosable=(0, 1), best=(1,)), dict(inputs=np.zeros(3), choosable=(0, 2), best=(0,))]
+    assert agreement(Fixed(), goals, cases) == 0.5
