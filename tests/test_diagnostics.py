@@ -248,3 +248,23 @@ def test_placement_teaches_a_fresh_predictor_the_plans_choice() -> None:
 
     cases = [dict(inputs=np.zeros(3), choosable=(0, 1), best=(1,)), dict(inputs=np.zeros(3), choosable=(0, 2), best=(0,))]
     assert agreement(Fixed(), goals, cases) == 0.5
+
+
+def test_placement_can_read_a_sub_goal_as_the_change_it_makes() -> None:
+    """predictor_placement.py ``--goal-input change``: every sub-goal is read as its features less the state's, the
+    same in the scores of every (state, sub-goal) as in a question's pair."""
+    from gymnasium import spaces
+
+    from benchmarks.diagnostics.predictor_placement import goal_input, scores_of
+    from sb3_hhp.preferences.predictor import PreferencePredictor
+
+    rng = np.random.default_rng(2)
+    states, goals = rng.random((4, 3)).astype(np.float32), rng.random((5, 3)).astype(np.float32)
+    predictor = PreferencePredictor(spaces.Box(-np.inf, np.inf, (3,), np.float32), hidden_dim=8, seed=0)
+    assert np.array_equal(goal_input(goals, states[1], "features"), goals)
+    assert np.allclose(goal_input(goals, states[1], "change"), goals - states[1])
+    scores = scores_of(predictor, goals, states, "change")
+    assert scores.shape == (4, 5)
+    assert np.allclose(scores[1], [predictor.score(states[1:2], (goal - states[1])[None])[0] for goal in goals], atol=1e-6)
+    assert np.allclose(scores_of(predictor, goals, states), predictor.score_matrix(states, goals))
+    assert not np.allclose(scores, predictor.score_matrix(states, goals))

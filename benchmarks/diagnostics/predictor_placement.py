@@ -19,6 +19,10 @@ among the plan's best (the agreement ``oracle_choices.py`` reports). The pairs:
 - ``random``: two choosable sub-goals at random;
 - ``top2``: the predictor's own two best-scored choosable sub-goals (where its choice would change).
 
+``--predictor-kwargs`` changes the fresh predictors' settings, ``--goal-input change`` has them read a sub-goal as the
+change it would make to the state's features instead of its features; ``--records`` keeps the plan's choices in a
+file, so that a second comparison plays no episodes::
+
     python benchmarks/diagnostics/predictor_placement.py RUN/MiniGrid-ObstructedMaze-1Q-v1.zip --labels 25 50 100 200 \\
         --out benchmarks/results/diagnostics/predictor_placement.json
 """
@@ -85,11 +89,30 @@ def pair_of(rule: str, record: dict, scores: Callable[[dict], np.ndarray], rng: 
     raise ValueError(f"unknown pair rule {rule!r}: one of {PAIRS}")
 
 
-def agreement(predictor: PreferencePredictor, goals: np.ndarray, records: list[dict]) -> float:
-    """The fraction of ``records`` whose best-scored choosable sub-goal is among the plan's best."""
+GOAL_INPUTS = ("features", "change")
+
+
+def goal_input(goals: np.ndarray, state: np.ndarray, how: str) -> np.ndarray:
+    """What the predictor reads of sub-goals ``goals`` ``(G, D)`` in ``state`` ``(D,)``: their features as the run
+    reads them (``features``), or the change each would make to the state's (``change``: ``goal - state``)."""
+    return goals if how == "features" else goals - state[None]
+
+
+def scores_of(predictor: PreferencePredictor, goals: np.ndarray, states: np.ndarray, how: str = "features") -> np.ndarray:
+    """The predictor's scores ``(N, G)`` of every sub-goal in each of ``states`` ``(N, D)``."""
+    if how == "features":
+        return predictor.score_matrix(states, goals)
+    n, g = len(states), len(goals)
+    pairs = np.repeat(states, g, axis=0)
+    return predictor.score(pairs, (goals[None] - states[:, None]).reshape(n * g, -1)).reshape(n, g)
+
+
+def agreement(predictor: PreferencePredictor, goals: np.ndarray, records: list[dict], how: str = "features") -> float:
+    """The fraction of ``records`` whose best-scored choosable sub-goal is among the plan's best (``how``: what the
+    predictor reads of a sub-goal, :func:`goal_input`)."""
     if not records:
         return float("nan")
-    scores = predictor.score_matrix(np.stack([r["inputs"] for r in records]), goals)
+    scores = scores_of(predictor, goals, np.stack([r["inputs"] for r in records]), how)
     hits = 0
     for row, record in zip(scores, records):
         choosable = np.asarray(record["choosable"])
@@ -98,25 +121,26 @@ def agreement(predictor: PreferencePredictor, goals: np.ndarray, records: list[d
 
 
 def placement_curve(make_predictor: Callable[[], PreferencePredictor], goals: np.ndarray, train: list[dict],
-                    test: list[dict], rule: str, labels: list[int], seed: int) -> list[dict]:
+                    test: list[dict], rule: str, labels: list[int], seed: int, how: str = "features") -> list[dict]:
     """A fresh predictor trained after every label on ``max(labels)`` questions under ``rule`` in random states of
     ``train`` (those with two or more choosable sub-goals); its agreement on ``test`` (and ``train``) at each count
     of ``labels`` spent."""
     rng = np.random.default_rng(seed)
     predictor = make_predictor()
     usable = [r for r in train if len(r["choosable"]) >= 2]
-    scores = lambda record: predictor.score_matrix(record["inputs"][None], goals)[0]  # noqa: E731
+    scores = lambda record: scores_of(predictor, goals, record["inputs"][None], how)[0]  # noqa: E731
     points, taught = [], 0
     for spent in range(1, max(labels) + 1):
         record = usable[int(rng.integers(len(usable)))]
         goal1, goal2 = pair_of(rule, record, scores, rng)
         label = answer(record["ranks"], goal1, goal2)
-        if predictor.add(record["inputs"], goals[goal1], goals[goal2], label):
+        read = goal_input(goals[[goal1, goal2]], record["inputs"], how)
+        if predictor.add(record["inputs"], read[0], read[1], label):
             predictor.train()
             taught += 1
         if spent in labels:
-            points.append(dict(labels=spent, taught=taught, test=agreement(predictor, goals, test),
-                               train=agreement(predictor, goals, train)))
+            points.append(dict(labels=spent, taught=taught, test=agreement(predictor, goals, test, how),
+                               train=agreement(predictor, goals, train, how)))
     return points
 
 
@@ -136,6 +160,9 @@ def main() -> None:
                              "played), else written")
     parser.add_argument("--predictor-kwargs", type=json.loads, default={},
                         help="JSON: settings of the fresh predictors over the run's (e.g. '{\"hidden_dim\": 64}')")
+    parser.add_argument("--goal-input", choices=GOAL_INPUTS, default="features",
+                        help="what the fresh predictors read of a sub-goal: its features (as runs), or the change it "
+                             "would make to the state's features")
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     for name in ("train_episodes", "test_episodes", "repeats"):
@@ -172,7 +199,8 @@ def main() -> None:
         curves[rule] = []
         for repeat in range(args.repeats):
             make = lambda: PreferencePredictor(space, **{**settings, "seed": repeat})  # noqa: E731
-            curves[rule].append(placement_curve(make, goals, train, test, rule, sorted(args.labels), seed=repeat))
+            curves[rule].append(placement_curve(make, goals, train, test, rule, sorted(args.labels), seed=repeat,
+                                               how=args.goal_input))
         for i, count in enumerate(sorted(args.labels)):
             tests = [curve[i]["test"] for curve in curves[rule]]
             taught = [curve[i]["taught"] for curve in curves[rule]]
@@ -183,7 +211,8 @@ def main() -> None:
             model=model_path, env=args.env, train_seeds=[args.train_seed, args.train_episodes],
             test_seeds=[args.seed, args.test_episodes], train_choices=len(train), test_choices=len(test),
             run_predictor=run_predictor, ceiling=ceiling["ceiling"] / max(ceiling["choices"], 1),
-            settings={k: v for k, v in settings.items() if not callable(v)}, curves=curves), indent=1, default=str))
+            settings={k: v for k, v in settings.items() if not callable(v)}, goal_input=args.goal_input,
+            curves=curves), indent=1, default=str))
 
 
 if __name__ == "__main__":
