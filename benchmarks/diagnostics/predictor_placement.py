@@ -163,11 +163,17 @@ def main() -> None:
     parser.add_argument("--goal-input", choices=GOAL_INPUTS, default="features",
                         help="what the fresh predictors read of a sub-goal: its features (as runs), or the change it "
                              "would make to the state's features")
+    parser.add_argument("--state-dims", type=int, default=None,
+                        help="the fresh predictors read only the first N features of a state, the rest zeroed (MiniGrid: "
+                             "the one-hots of what is carried and faced, and the goal space's flags, come first; "
+                             "the grid's (object, state) presence flags last)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     for name in ("train_episodes", "test_episodes", "repeats"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.state_dims is not None and args.state_dims < 0:
+        parser.error(f"--state-dims must be >= 0, got {args.state_dims}")
     if min(args.labels) < 1:
         parser.error(f"--labels must be >= 1, got {args.labels}")
     model_path = model_file(args.model)
@@ -187,7 +193,17 @@ def main() -> None:
             cached.write_bytes(pickle.dumps((train, test)))
     goals = model.predictor_inputs(model.goal_obs)
     ceiling = feature_ceiling(test)
-    run_predictor = agreement(model.predictor, goals, test)
+    if args.state_dims is not None:  # what the fresh predictors read of a state; the run's own reads it whole
+        def cut(records: list[dict]) -> list[dict]:
+            cut_inputs = [record["inputs"].copy() for record in records]
+            for inputs in cut_inputs:
+                inputs[args.state_dims:] = 0
+            return [dict(record, inputs=inputs) for record, inputs in zip(records, cut_inputs)]
+        run_predictor_test = test
+        train, test = cut(train), cut(test)
+    else:
+        run_predictor_test = test
+    run_predictor = agreement(model.predictor, goals, run_predictor_test)
     print(f"{model_path}: {len(model.subgoals)} sub-goals; the plan's choices: {len(train)} in {args.train_episodes} "
           f"training episodes, {len(test)} in {args.test_episodes} test episodes ({time.perf_counter() - start:.0f} s)")
     print(f"test choices: the run's own predictor matches {run_predictor:.2f}; the feature ceiling "
@@ -212,6 +228,7 @@ def main() -> None:
             test_seeds=[args.seed, args.test_episodes], train_choices=len(train), test_choices=len(test),
             run_predictor=run_predictor, ceiling=ceiling["ceiling"] / max(ceiling["choices"], 1),
             settings={k: v for k, v in settings.items() if not callable(v)}, goal_input=args.goal_input,
+            state_dims=args.state_dims,
             curves=curves), indent=1, default=str))
 
 
