@@ -184,7 +184,7 @@ def test_the_feature_ceiling_counts_per_alike_input_the_most_often_best_sub_goal
     from benchmarks.diagnostics.oracle_choices import feature_ceiling
 
     def record(reads: bytes, best: tuple, choosable: tuple = (0, 1, 2), state: str = "s") -> dict:
-        return dict(reads=reads, choosable=choosable, best=best, state=state)
+        return dict(inputs=np.frombuffer(reads, dtype=np.uint8), choosable=choosable, best=best, state=state)
 
     records = [record(b"a", (0,)), record(b"a", (0,)), record(b"a", (1,), state="t"),  # alike: 2 of 3 at best
                record(b"a", (1,), choosable=(1, 2)),  # other choosable sub-goals: its own group

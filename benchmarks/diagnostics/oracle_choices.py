@@ -47,9 +47,10 @@ def oracle_chooser(model: HhP, oracle: Any, env: gym.Env, planned: list, agree: 
     in ``agree`` the plan's choices (``choices``) and those the meta-controller's choice (``meta``) and the
     predictor's best-scored sub-goal (``predictor``), among the same ones, would have matched (a tie on the plan
     counts); appends to ``records`` (where given), for each choice the plan made, what the predictor reads of the
-    state (its bytes, and as an array), the plan's ranks of every sub-goal (inf: not choosable), the choosable
+    state, the plan's ranks of every sub-goal (inf: not choosable), the choosable
     sub-goals, the plan's best ones and the state's description (:func:`feature_ceiling` reads them)."""
     keys = [goal.key for goal in model.subgoals]
+    goal_inputs = model.predictor_inputs(model.goal_obs)  # the sub-goals stay the same while the model plays
 
     def choose(batch: np.ndarray, chosen: np.ndarray, excluded: np.ndarray) -> np.ndarray:
         own = HhP._other_choices(model, batch, chosen, excluded)
@@ -63,14 +64,14 @@ def oracle_chooser(model: HhP, oracle: Any, env: gym.Env, planned: list, agree: 
         ranks[excluded[0, : len(ranks)]] = np.inf
         planned.append(bool(np.isfinite(ranks).any()))
         if planned[-1]:  # would the meta-controller, or the predictor's best score, have chosen as the plan does?
-            scores = model.predictor.score_matrix(model.predictor_inputs(batch), model.predictor_inputs(model.goal_obs))[0]
+            reads = model.predictor_inputs(batch)[0]
+            scores = model.predictor.score_matrix(reads[None], goal_inputs)[0]
             scores[~np.isfinite(ranks)] = -np.inf
             agree["meta"] += int(ranks[own[0]] == ranks.min())
             agree["predictor"] += int(ranks[scores.argmax()] == ranks.min())
             agree["choices"] += 1
             if records is not None:
-                reads = model.predictor_inputs(batch)[0]
-                records.append(dict(reads=reads.tobytes(), inputs=reads, ranks=ranks.copy(),
+                records.append(dict(inputs=reads, ranks=ranks.copy(),
                                     choosable=tuple(np.flatnonzero(np.isfinite(ranks)).tolist()),
                                     best=tuple(np.flatnonzero(ranks == ranks.min()).tolist()),
                                     state=model.goal_space.describe(model.goal_space.key(batch[0]))))
@@ -89,7 +90,7 @@ def feature_ceiling(records: list, describe: Callable[[int], str] = str, top: in
     names a sub-goal index)."""
     groups: dict = {}
     for record in records:
-        groups.setdefault((record["reads"], record["choosable"]), []).append(record)
+        groups.setdefault((record["inputs"].tobytes(), record["choosable"]), []).append(record)
     matched, conflicts = 0, []
     for group in groups.values():
         best = Counter(goal for record in group for goal in record["best"])
@@ -106,8 +107,10 @@ def feature_ceiling(records: list, describe: Callable[[int], str] = str, top: in
 def predictor_chooser(model: HhP, planned: list) -> Callable:
     """A stand-in for ``model._other_choices`` that chooses the predictor's best-scored sub-goal among the choosable
     ones not ruled out (the meta-controller's reward without its learned values, eq. 3 with beta 0)."""
+    goal_inputs = model.predictor_inputs(model.goal_obs)  # the sub-goals stay the same while the model plays
+
     def choose(batch: np.ndarray, chosen: np.ndarray, excluded: np.ndarray) -> np.ndarray:
-        scores = model.predictor.score_matrix(model.predictor_inputs(batch), model.predictor_inputs(model.goal_obs))
+        scores = model.predictor.score_matrix(model.predictor_inputs(batch), goal_inputs)
         mask = model.action_mask(batch)
         if mask is not None:
             scores[~np.broadcast_to(mask, (len(batch), mask.shape[-1]))[:, : scores.shape[1]]] = -np.inf

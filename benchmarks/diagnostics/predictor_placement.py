@@ -193,17 +193,11 @@ def main() -> None:
             cached.write_bytes(pickle.dumps((train, test)))
     goals = model.predictor_inputs(model.goal_obs)
     ceiling = feature_ceiling(test)
-    if args.state_dims is not None:  # what the fresh predictors read of a state; the run's own reads it whole
-        def cut(records: list[dict]) -> list[dict]:
-            cut_inputs = [record["inputs"].copy() for record in records]
-            for inputs in cut_inputs:
-                inputs[args.state_dims:] = 0
-            return [dict(record, inputs=inputs) for record, inputs in zip(records, cut_inputs)]
-        run_predictor_test = test
-        train, test = cut(train), cut(test)
-    else:
-        run_predictor_test = test
-    run_predictor = agreement(model.predictor, goals, run_predictor_test)
+    run_predictor = agreement(model.predictor, goals, test)  # the run's own predictor reads a state whole
+    if args.state_dims is not None:  # what the fresh predictors read of a state
+        kept = np.arange(goals.shape[1]) < args.state_dims
+        train, test = ([dict(record, inputs=np.where(kept, record["inputs"], 0).astype(record["inputs"].dtype))
+                        for record in records] for records in (train, test))
     print(f"{model_path}: {len(model.subgoals)} sub-goals; the plan's choices: {len(train)} in {args.train_episodes} "
           f"training episodes, {len(test)} in {args.test_episodes} test episodes ({time.perf_counter() - start:.0f} s)")
     print(f"test choices: the run's own predictor matches {run_predictor:.2f}; the feature ceiling "
