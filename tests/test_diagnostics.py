@@ -268,3 +268,29 @@ def test_placement_can_read_a_sub_goal_as_the_change_it_makes() -> None:
     assert np.allclose(scores[1], [predictor.score(states[1:2], (goal - states[1])[None])[0] for goal in goals], atol=1e-6)
     assert np.allclose(scores_of(predictor, goals, states), predictor.score_matrix(states, goals))
     assert not np.allclose(scores, predictor.score_matrix(states, goals))
+
+
+def test_choice_orders_fit_an_order_per_state_key_only_where_asked() -> None:
+    """choice_orders.py: where the plan prefers sub-goal 0 in states of one key and 1 in the other's, one order of the
+    sub-goals (``goal``) can match at most half the choices and a score table per key (``key``) all of them; every
+    pair the ranks order is a triple, random labels keep the preferred sub-goal first and drop ties."""
+    from benchmarks.diagnostics.choice_orders import TableOrder, agreement, every_pair, random_labels, state_key
+
+    def record(flag: float, extra: float) -> dict:
+        ranks = np.array([0.0, 1.0, 1.0]) if flag else np.array([1.0, 0.0, 1.0])
+        return dict(inputs=np.array([flag, extra], dtype=np.float32), choosable=(0, 1, 2), ranks=ranks,
+                    best=(0,) if flag else (1,))
+
+    train = [record(flag, extra) for flag in (0.0, 1.0) for extra in (0.0, 1.0, 2.0)]
+    test = [record(flag, 3.0) for flag in (0.0, 1.0)]
+    triples = every_pair(train)
+    assert len(triples) == 12 and all(r["ranks"][a] < r["ranks"][b] for r, a, b in triples)
+    goal = TableOrder(3, state_key("goal", 1)).fit(triples)
+    key = TableOrder(3, state_key("key", 1)).fit(triples)
+    full = TableOrder(3, state_key("full", 1)).fit(triples)
+    assert len(goal.keys) == 1 and len(key.keys) == 2 and len(full.keys) == 6
+    assert agreement(goal, test) == 0.5 and agreement(key, test) == 1.0
+    assert agreement(full, train) == 1.0 and agreement(full, test) == 0.5  # unseen inputs score by the order alone
+    labels = random_labels(train, 40, seed=0)
+    assert 0 < len(labels) < 40  # pairs (1, 2) or (0, 2) of equal rank are spent
+    assert all(r["ranks"][a] < r["ranks"][b] for r, a, b in labels)
