@@ -12,7 +12,8 @@ asks which of them the labels reach: a score per sub-goal plus, by ``--condition
 
 fitted by maximum likelihood of the Bradley-Terry model (eq. 1, 2 of the paper) with an L2 penalty, first on every
 pair the plan's ranks order in every training choice (what these scorers could learn from unlimited questions on those
-states), then on ``--labels`` questions naming two choosable sub-goals at random in random training states (as
+states; also fitted to the test choices' own pairs, the most such scores can match there, beside the feature
+ceilings), then on ``--labels`` questions naming two choosable sub-goals at random in random training states (as
 ``predictor_placement.py --pairs random``). Each is scored as ``predictor_placement.py`` scores a predictor: the
 fraction of the test choices whose best-scored choosable sub-goal is among the plan's best. Reads the plan's choices
 that ``predictor_placement.py --records`` keeps (no episode is played)::
@@ -32,6 +33,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
+from benchmarks.diagnostics.oracle_choices import feature_ceiling  # noqa: E402
 from benchmarks.diagnostics.predictor_placement import answer, pair_of  # noqa: E402
 from sb3_hhp.preferences.types import Label  # noqa: E402
 
@@ -137,11 +139,14 @@ def study(train: list[dict], test: list[dict], conditions: list[str], labels: li
     for condition in conditions:
         key = state_key(condition, key_dims)
         everything = TableOrder(n_goals, key, penalty).fit(every_pair(train))
+        on_test = TableOrder(n_goals, key, penalty).fit(every_pair(test))  # in sample: the most such scores can match
         entry = dict(keys=len(everything.keys), every_pair=dict(test=agreement(everything, test),
-                                                                 train=agreement(everything, train)), labels={})
+                                                                 train=agreement(everything, train)),
+                     in_sample_test=agreement(on_test, test), labels={})
         if report:
             report(f"{condition:>5}: {entry['keys']} state keys; every training pair: test {entry['every_pair']['test']:.2f}"
-                   f" (train {entry['every_pair']['train']:.2f})")
+                   f" (train {entry['every_pair']['train']:.2f}); fitted to every test pair: test "
+                   f"{entry['in_sample_test']:.2f}")
         for count in labels:
             tests = [agreement(TableOrder(n_goals, key, penalty).fit(random_labels(train, count, seed)), test)
                      for seed in range(repeats)]
@@ -170,11 +175,15 @@ def main() -> None:
     if not path.exists():
         parser.error(f"{path} does not exist: write it with predictor_placement.py MODEL --records {path}")
     train, test = pickle.loads(path.read_bytes())
-    print(f"{path}: {len(train)} training choices, {len(test)} test choices, {len(train[0]['ranks'])} sub-goals")
+    ceilings = {name: feature_ceiling(records) for name, records in (("train", train), ("test", test))}
+    ceilings = {name: c["ceiling"] / max(c["choices"], 1) for name, c in ceilings.items()}
+    print(f"{path}: {len(train)} training choices, {len(test)} test choices, {len(train[0]['ranks'])} sub-goals; "
+          f"feature ceilings: train {ceilings['train']:.2f}, test {ceilings['test']:.2f}")
     results = study(train, test, args.conditions, sorted(args.labels), args.repeats, args.key_dims, args.penalty)
     if args.out:
         pathlib.Path(args.out).write_text(json.dumps(dict(
-            records=str(path), train_choices=len(train), test_choices=len(test), key_dims=args.key_dims,
+            records=str(path), train_choices=len(train), test_choices=len(test), feature_ceilings=ceilings,
+            key_dims=args.key_dims,
             penalty=args.penalty, repeats=args.repeats, conditions=results), indent=1))
 
 
