@@ -34,7 +34,7 @@ from scipy.optimize import minimize
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
 from benchmarks.diagnostics.oracle_choices import feature_ceiling  # noqa: E402
-from benchmarks.diagnostics.predictor_placement import answer, pair_of  # noqa: E402
+from benchmarks.diagnostics.predictor_placement import answer, matched, pair_of  # noqa: E402
 from sb3_hhp.preferences.types import Label  # noqa: E402
 
 CONDITIONS = ("goal", "key", "full")
@@ -98,11 +98,7 @@ class TableOrder:
 
 def agreement(order: TableOrder, records: list[dict]) -> float:
     """The fraction of ``records`` whose best-scored choosable sub-goal is among the plan's best."""
-    hits = 0
-    for record in records:
-        choosable = np.asarray(record["choosable"])
-        hits += int(choosable[order.scores(record)[choosable].argmax()] in record["best"])
-    return hits / len(records) if records else float("nan")
+    return matched(np.array([order.scores(record) for record in records]), records)
 
 
 def every_pair(records: list[dict]) -> list[tuple[dict, int, int]]:
@@ -120,8 +116,8 @@ def random_labels(records: list[dict], count: int, seed: int) -> list[tuple[dict
     choosable), answered by the plan's ranks; ties teach nothing (spent, not kept)."""
     rng = np.random.default_rng(seed)
     usable = [record for record in records if len(record["choosable"]) >= 2]
-    triples = []
-    for _ in range(count):
+    triples: list = []
+    for _ in range(count if usable else 0):
         record = usable[int(rng.integers(len(usable)))]
         a, b = pair_of("random", record, None, rng)
         label = answer(np.asarray(record["ranks"]), a, b)
@@ -175,6 +171,8 @@ def main() -> None:
     if not path.exists():
         parser.error(f"{path} does not exist: write it with predictor_placement.py MODEL --records {path}")
     train, test = pickle.loads(path.read_bytes())
+    if not train or not test:
+        parser.error(f"{path} holds {len(train)} training and {len(test)} test choices: both must hold some")
     ceilings = {name: feature_ceiling(records) for name, records in (("train", train), ("test", test))}
     ceilings = {name: c["ceiling"] / max(c["choices"], 1) for name, c in ceilings.items()}
     print(f"{path}: {len(train)} training choices, {len(test)} test choices, {len(train[0]['ranks'])} sub-goals; "

@@ -112,12 +112,17 @@ def agreement(predictor: PreferencePredictor, goals: np.ndarray, records: list[d
     predictor reads of a sub-goal, :func:`goal_input`)."""
     if not records:
         return float("nan")
-    scores = scores_of(predictor, goals, np.stack([r["inputs"] for r in records]), how)
+    return matched(scores_of(predictor, goals, np.stack([r["inputs"] for r in records]), how), records)
+
+
+def matched(scores: np.ndarray, records: list[dict]) -> float:
+    """The fraction of ``records`` whose best-scored choosable sub-goal, by their rows of ``scores`` ``(N, G)``, is
+    among the plan's best."""
     hits = 0
     for row, record in zip(scores, records):
         choosable = np.asarray(record["choosable"])
         hits += int(choosable[row[choosable].argmax()] in record["best"])
-    return hits / len(records)
+    return hits / len(records) if records else float("nan")
 
 
 def placement_curve(make_predictor: Callable[[], PreferencePredictor], goals: np.ndarray, train: list[dict],
