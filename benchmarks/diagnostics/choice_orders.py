@@ -34,7 +34,7 @@ from scipy.optimize import minimize
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
 from benchmarks.diagnostics.oracle_choices import feature_ceiling  # noqa: E402
-from benchmarks.diagnostics.predictor_placement import answer, matched, pair_of  # noqa: E402
+from benchmarks.diagnostics.predictor_placement import ask, matched  # noqa: E402
 from sb3_hhp.preferences.types import Label  # noqa: E402
 
 CONDITIONS = ("goal", "key", "full")
@@ -64,12 +64,10 @@ class TableOrder:
 
     def fit(self, triples: list[tuple[dict, int, int]]) -> "TableOrder":
         self.keys = {}
-        for record, _, _ in triples:
-            self.keys.setdefault(self.key(record), len(self.keys))
+        rows = np.array([self.keys.setdefault(self.key(record), len(self.keys)) for record, _, _ in triples], dtype=int)
         if not triples:
             self.c = np.zeros((0, self.n_goals))
             return self
-        rows = np.array([self.keys[self.key(record)] for record, _, _ in triples])
         won = np.array([g for _, g, _ in triples])
         lost = np.array([g for _, _, g in triples])
         n, k = self.n_goals, len(self.keys)
@@ -118,9 +116,7 @@ def random_labels(records: list[dict], count: int, seed: int) -> list[tuple[dict
     usable = [record for record in records if len(record["choosable"]) >= 2]
     triples: list = []
     for _ in range(count if usable else 0):
-        record = usable[int(rng.integers(len(usable)))]
-        a, b = pair_of("random", record, None, rng)
-        label = answer(np.asarray(record["ranks"]), a, b)
+        record, a, b, label = ask(usable, "random", None, rng)
         if label is not Label.INCOMPARABLE:
             triples.append((record, a, b) if label is Label.FIRST else (record, b, a))
     return triples
@@ -131,11 +127,12 @@ def study(train: list[dict], test: list[dict], conditions: list[str], labels: li
     """Each condition's test (and training) agreement fitted on every training pair, then on each count of
     ``labels`` random questions (``repeats`` draws)."""
     n_goals = len(train[0]["ranks"])
+    train_pairs, test_pairs = every_pair(train), every_pair(test)
     results: dict = {}
     for condition in conditions:
         key = state_key(condition, key_dims)
-        everything = TableOrder(n_goals, key, penalty).fit(every_pair(train))
-        on_test = TableOrder(n_goals, key, penalty).fit(every_pair(test))  # in sample: the most such scores can match
+        everything = TableOrder(n_goals, key, penalty).fit(train_pairs)
+        on_test = TableOrder(n_goals, key, penalty).fit(test_pairs)  # in sample: the most such scores can match
         entry = dict(keys=len(everything.keys), every_pair=dict(test=agreement(everything, test),
                                                                  train=agreement(everything, train)),
                      in_sample_test=agreement(on_test, test), labels={})

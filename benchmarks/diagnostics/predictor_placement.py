@@ -89,6 +89,15 @@ def pair_of(rule: str, record: dict, scores: Callable[[dict], np.ndarray], rng: 
     raise ValueError(f"unknown pair rule {rule!r}: one of {PAIRS}")
 
 
+def ask(usable: list[dict], rule: str, scores: Callable[[dict], np.ndarray], rng: np.random.Generator
+        ) -> tuple[dict, int, int, Label]:
+    """One question: a state drawn from ``usable`` (records with two or more choosable sub-goals), the pair ``rule``
+    names there (:func:`pair_of`) and the oracle's label of it (:func:`answer`)."""
+    record = usable[int(rng.integers(len(usable)))]
+    goal1, goal2 = pair_of(rule, record, scores, rng)
+    return record, goal1, goal2, answer(record["ranks"], goal1, goal2)
+
+
 GOAL_INPUTS = ("features", "change")
 
 
@@ -136,9 +145,7 @@ def placement_curve(make_predictor: Callable[[], PreferencePredictor], goals: np
     scores = lambda record: scores_of(predictor, goals, record["inputs"][None], how)[0]  # noqa: E731
     points, taught = [], 0
     for spent in range(1, max(labels) + 1):
-        record = usable[int(rng.integers(len(usable)))]
-        goal1, goal2 = pair_of(rule, record, scores, rng)
-        label = answer(record["ranks"], goal1, goal2)
+        record, goal1, goal2, label = ask(usable, rule, scores, rng)
         read = goal_input(goals[[goal1, goal2]], record["inputs"], how)
         if predictor.add(record["inputs"], read[0], read[1], label):
             predictor.train()
