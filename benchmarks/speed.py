@@ -12,8 +12,9 @@ machine drifts); then a profiled continuation of HhP (where the time goes)::
     python benchmarks/speed.py ratio --env MiniGrid-DoorKey-8x8-v0 --out benchmarks/results/speed
 
 ``late``: a saved run's model (e.g. the benchmark runner's DoorKey-8x8 run at 300,000 steps) trained on for
-``--profile-steps`` more steps, timed then profiled, against flat SB3 DQN timed as in ``ratio`` over the same
-number of steps: the speed late in a run, when sub-goals have accumulated and episodes are short; ``--replay``
+``--profile-steps`` more steps, timed, then with a clock around each part of a step (:func:`timed_parts`: its
+``shares``), then profiled, against flat SB3 DQN timed as in ``ratio`` over the same number of steps: the speed late
+in a run, when sub-goals have accumulated and episodes are short; ``--replay``
 (a checkpoint's ``replay.pkl``) fills the learners' replays as the run had them (else they start empty)::
 
     python benchmarks/speed.py late --model RUN/MiniGrid-DoorKey-8x8-v0.zip --n-envs 8
@@ -231,6 +232,7 @@ def late(args: argparse.Namespace) -> dict[str, Any]:
     hhp = saved_run(args)
     start_steps = hhp.num_timesteps
     hhp_fps = timed_steps(hhp, args.profile_steps)
+    shares = timed_parts(hhp, args.profile_steps)
     profiler = cProfile.Profile()
     profiler.enable()
     hhp.learn(args.profile_steps, reset_num_timesteps=False)
@@ -243,7 +245,43 @@ def late(args: argparse.Namespace) -> dict[str, Any]:
     return dict(env=args.env, model=args.model, replay=args.replay, code=str(pathlib.Path(sb3_hhp.__file__).parent),
                 from_step=start_steps, steps=args.profile_steps, n_envs=args.n_envs,
                 hhp_fps=round(hhp_fps, 1), dqn_fps=round(dqn_fps, 1), ratio=round(hhp_fps / dqn_fps, 3),
-                num_subgoals=len(hhp.subgoals), dqn_learning=learning)
+                num_subgoals=len(hhp.subgoals), dqn_learning=learning, shares=shares)
+
+
+#: the parts of a step :func:`timed_parts` times: (where the method is, its name, the label); nested parts after
+#: the part that holds them
+PARTS = (("model", "train", "meta-controller updates"), ("model", "_rewards", "meta-controller updates: eq. 3 rewards"),
+         ("model", "_target", "meta-controller updates: Double DQN targets"),
+         ("learners", "train_rounds", "sub-goal learners' updates"), ("model", "after_episode", "between episodes"))
+
+
+def timed_parts(hhp: HhP, steps: int) -> dict[str, Any]:
+    """Train ``hhp`` on for ``steps`` primitive steps with a clock around each part of :data:`PARTS` (a few
+    microseconds a call, where cProfile's per-call cost inflates Python-heavy parts): its seconds and share of the
+    whole; the methods are restored after."""
+    owners = {"model": hhp, "learners": hhp.subpolicies}
+    spent: dict[str, float] = {label: 0.0 for _, _, label in PARTS}
+
+    def clocked(method: Any, label: str) -> Any:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            begin = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                spent[label] += time.perf_counter() - begin
+        return call
+
+    for owner, name, label in PARTS:
+        setattr(owners[owner], name, clocked(getattr(owners[owner], name), label))
+    try:
+        begin, before = time.perf_counter(), hhp.num_timesteps
+        hhp.learn(steps, reset_num_timesteps=False)
+        total, done = time.perf_counter() - begin, hhp.num_timesteps - before
+    finally:
+        for owner, name, _ in PARTS:
+            del owners[owner].__dict__[name]  # the class's method again
+    return dict(steps=done, seconds=round(total, 2), fps=round(done / total, 1),
+                parts={label: dict(seconds=round(value, 2), share=round(value / total, 3)) for label, value in spent.items()})
 
 
 def snapshot(args: argparse.Namespace, kwargs: dict[str, Any], prefix: str) -> tuple[HhP, pathlib.Path]:

@@ -601,6 +601,18 @@ def test_the_speed_script_splits_a_learner_call() -> None:
     result = speed.learner_call(args)
     assert result["model"] == args.model and result["snapshot_steps"] == saved.num_timesteps
     assert result["snapshot_subgoals"] == len(saved.subgoals) and result["call_ms"] > 0
+    # ``late``'s clocks around the parts of a step: every part named, nested parts within theirs, the methods restored
+    shares = speed.timed_parts(loaded, 400)
+    parts = shares["parts"]
+    assert shares["steps"] >= 400 and shares["fps"] > 0 and set(parts) == {label for _, _, label in speed.PARTS}
+    assert parts["sub-goal learners' updates"]["seconds"] > 0 and parts["between episodes"]["seconds"] > 0
+    meta = parts["meta-controller updates"]["seconds"]
+    assert parts["meta-controller updates: eq. 3 rewards"]["seconds"] <= meta
+    assert parts["meta-controller updates: Double DQN targets"]["seconds"] <= meta
+    assert sum(parts[label]["seconds"] for label in ("meta-controller updates", "sub-goal learners' updates",
+                                                   "between episodes")) <= shares["seconds"]
+    assert not {"train", "_rewards", "_target", "after_episode"} & set(vars(loaded))
+    assert "train_rounds" not in vars(loaded.subpolicies)
 
 
 def test_the_evaluation_script_replays_a_runs_episodes_with_load_options(tmp_path, monkeypatch, capsys) -> None:
