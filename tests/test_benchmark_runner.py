@@ -605,7 +605,7 @@ def test_the_speed_script_splits_a_learner_call() -> None:
     shares = speed.timed_parts(loaded, 400)
     parts = shares["parts"]
     assert shares["steps"] >= 400 and shares["fps"] > 0 and set(parts) == {label for _, _, label in speed.PARTS}
-    assert parts["sub-goal learners' updates"]["seconds"] > 0 and parts["between episodes"]["seconds"] > 0
+    assert parts["sub-goal learners' updates"]["seconds"] > 0  # due every few steps (an episode may not end in 400)
     meta = parts["meta-controller updates"]["seconds"]
     assert parts["meta-controller updates: eq. 3 rewards"]["seconds"] <= meta
     assert parts["meta-controller updates: Double DQN targets"]["seconds"] <= meta
