@@ -271,15 +271,15 @@ def timed_parts(hhp: HhP, steps: int) -> dict[str, Any]:
                 spent[label] += time.perf_counter() - begin
         return call
 
-    for owner, name, label in PARTS:
-        setattr(owners[owner], name, clocked(getattr(owners[owner], name), label))
     try:
+        for owner, name, label in PARTS:
+            setattr(owners[owner], name, clocked(getattr(owners[owner], name), label))
         begin, before = time.perf_counter(), hhp.num_timesteps
         hhp.learn(steps, reset_num_timesteps=False)
         total, done = time.perf_counter() - begin, hhp.num_timesteps - before
     finally:
         for owner, name, _ in PARTS:
-            del owners[owner].__dict__[name]  # the class's method again
+            vars(owners[owner]).pop(name, None)  # the class's method again
     return dict(steps=done, seconds=round(total, 2), fps=round(done / total, 1),
                 parts={label: dict(seconds=round(value, 2), share=round(value / total, 3)) for label, value in spent.items()})
 
