@@ -138,6 +138,17 @@ def timed_steps(model: Any, steps: int) -> float:
     return (model.num_timesteps - before) / (time.perf_counter() - begin)
 
 
+def clocked(method: Any, spent: Any, key: Any) -> Any:
+    """``method`` with a clock around each call: its seconds added to ``spent[key]``."""
+    def call(*args: Any, **kwargs: Any) -> Any:
+        begin = time.perf_counter()
+        try:
+            return method(*args, **kwargs)
+        finally:
+            spent[key] += time.perf_counter() - begin
+    return call
+
+
 def timed_window(model: Any, start: int, stop: int) -> float:
     """Train ``model`` to ``start`` steps untimed, then to ``stop`` timed: primitive steps per second over the window."""
     model.learn(start)
@@ -261,26 +272,17 @@ def timed_parts(hhp: HhP, steps: int) -> dict[str, Any]:
     whole; the methods are restored after."""
     owners = {"model": hhp, "learners": hhp.subpolicies}
     spent: dict[str, float] = {label: 0.0 for _, _, label in PARTS}
-
-    def clocked(method: Any, label: str) -> Any:
-        def call(*args: Any, **kwargs: Any) -> Any:
-            begin = time.perf_counter()
-            try:
-                return method(*args, **kwargs)
-            finally:
-                spent[label] += time.perf_counter() - begin
-        return call
-
     try:
         for owner, name, label in PARTS:
-            setattr(owners[owner], name, clocked(getattr(owners[owner], name), label))
-        begin, before = time.perf_counter(), hhp.num_timesteps
-        hhp.learn(steps, reset_num_timesteps=False)
-        total, done = time.perf_counter() - begin, hhp.num_timesteps - before
+            setattr(owners[owner], name, clocked(getattr(owners[owner], name), spent, label))
+        before = hhp.num_timesteps
+        fps = timed_steps(hhp, steps)
+        done = hhp.num_timesteps - before
+        total = done / fps
     finally:
         for owner, name, _ in PARTS:
             vars(owners[owner]).pop(name, None)  # the class's method again
-    return dict(steps=done, seconds=round(total, 2), fps=round(done / total, 1),
+    return dict(steps=done, seconds=round(total, 2), fps=round(fps, 1),
                 parts={label: dict(seconds=round(value, 2), share=round(value / total, 3)) for label, value in spent.items()})
 
 
@@ -346,16 +348,10 @@ def parts(args: argparse.Namespace) -> dict[str, Any]:
         for name in fps:
             model = from_snapshot(args, folder, repeat)
             learners, spent = model.subpolicies, [0.0]
-            train_rounds, updates_before = learners.train_rounds, int(learners.n_updates.sum())
-
-            def timed_rounds(plan: list, first_round: int = 0) -> float:
-                begin = time.perf_counter()
-                loss = train_rounds(plan, first_round=first_round)
-                spent[0] += time.perf_counter() - begin
-                return loss
-
+            updates_before = int(learners.n_updates.sum())
             # an instance attribute: the learners' own method is not changed for other models
-            learners.train_rounds = timed_rounds if name == "full" else (lambda plan, first_round=0: 0.0)
+            learners.train_rounds = (clocked(learners.train_rounds, spent, 0) if name == "full"
+                                     else (lambda plan, first_round=0: 0.0))
             steps_before = model.num_timesteps
             fps[name].append(round(timed_steps(model, args.profile_steps), 1))
             if name == "full":  # learn() ends with an episode: count the steps it made
