@@ -9,13 +9,13 @@ run at a time: ``--envs MiniGrid-DoorKey-16x16-v0 --variants hhp --seeds 0``.
 Variants:
 
 - ``hhp``: ``python -m sb3_hhp.train --env ENV --oracle scripted -n STEPS --seed S --eval-both ...``, the
-  command users train with (hyperparameters from ``hhp_conf``, default ``hyperparams/hhp.yml``; a variant that
+  command users train with (hyperparameters from ``hhp_conf``, default ``sb3_hhp/hyperparams/hhp.yml``; a variant that
   names its own ``--oracle`` has that one instead of ``scripted``);
 - ``dqn``, ``ppo``: SB3's DQN and PPO, flat, on the observation HhP sees (:func:`sb3_hhp.goals.wrap_env`);
 - ``ppo_rnd``: PPO with RND's intrinsic reward added to the env's (:class:`sb3_hhp.curiosity.VecRNDReward`),
   the paper's baseline.
 
-The baselines take their settings from ``baselines_conf`` (default ``hyperparams/baselines.yml``). Every
+The baselines take their settings from ``baselines_conf`` (default ``sb3_hhp/hyperparams/baselines.yml``). Every
 variant trains for the sweep's step budget (primitive env steps), then is evaluated the way
 ``sb3_hhp.train`` evaluates HhP (:func:`sb3_hhp.train.evaluate`): ``eval_episodes`` fresh envs seeded
 ``seed + 10000``, ``seed + 10001``, ..., with the deterministic and with the stochastic policy. Learning
@@ -47,11 +47,11 @@ Sweep file (YAML)::
     eval_episodes: 100               # final evaluation (default 100)
     eval_freq: 10000                 # periodic evaluations, in env steps (default: steps // 20; 0: none)
     curve_episodes: 20               # episodes of each periodic evaluation (default 10)
-    hhp_conf: hyperparams/hhp.yml    # optional
+    hhp_conf: sb3_hhp/hyperparams/hhp.yml    # optional
     hhp_args: []                     # optional, more options for sb3_hhp.train
     hhp_variants:                    # optional, more HhP variants: name (hhp_...) -> their own options, after hhp_args
       hhp_rho0.2: [--oracle, noisy-scripted, --hyperparams, "oracle_kwargs:dict(rho=0.2)"]
-    baselines_conf: hyperparams/baselines.yml   # optional
+    baselines_conf: sb3_hhp/hyperparams/baselines.yml   # optional
 
 Needs the ``plots`` extra (pandas).
 """
@@ -93,7 +93,7 @@ SWEEP_KEYS: dict[str, Any] = {
     "hhp_conf": None,
     "hhp_args": [],
     "hhp_variants": {},
-    "baselines_conf": "hyperparams/baselines.yml",
+    "baselines_conf": "sb3_hhp/hyperparams/baselines.yml",
 }
 #: the columns of results.csv; a row's key is (env, variant, seed, steps); steps is the budget, timesteps the steps
 #: trained (PPO rounds the budget up to whole rollouts of n_steps * n_envs)
@@ -110,7 +110,7 @@ DEFAULT_CURVE_POINTS = 20
 CODE_FILE = "code.json"
 #: the files that make a run's result, as git pathspecs (a change there outside a commit is named in ``code``); the
 #: runs' own results are not among them
-CODE_PATHSPECS = ("sb3_hhp", "benchmarks", "hyperparams", "setup.cfg", "constraints.txt", ":(exclude)benchmarks/results")
+CODE_PATHSPECS = ("sb3_hhp", "benchmarks", "setup.cfg", "constraints.txt", ":(exclude)benchmarks/results")
 
 
 class SweepError(ValueError):
@@ -297,7 +297,7 @@ def check_env(env_id: str, where: str) -> None:
 def baseline_settings(config: str, variant: str, env_id: str) -> dict[str, Any]:
     """The hyperparameters of a flat baseline: ``config[variant]``'s entry for ``env_id``, its domain or ``default``.
 
-    :param config: the baselines' YAML file (``hyperparams/baselines.yml``)
+    :param config: the baselines' YAML file (``sb3_hhp/hyperparams/baselines.yml``)
     :param variant: ``dqn``, ``ppo`` or ``ppo_rnd``
     :param env_id: a registered env id
     """

@@ -2,7 +2,7 @@
 
 The measurements, one torch thread each unless ``--threads``:
 
-``ratio``: HhP (the env's ``hyperparams/hhp.yml`` entry, with the scripted oracle and a preference file, as
+``ratio``: HhP (the env's ``sb3_hhp/hyperparams/hhp.yml`` entry, with the scripted oracle and a preference file, as
 ``sb3_hhp.train`` builds it) against flat SB3 DQN doing the same learning work per
 primitive step on the same observation (the entry's sub-goal learner: MLP, ``train_freq``, ``batch_size``), both
 timed over the same late window of a run (default steps 20,000-30,000, when sub-goals have accumulated), in one
@@ -106,7 +106,7 @@ from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry
 
 
 def yaml_entry(env_id: str) -> tuple[str, dict[str, Any]]:
-    """The name and the whole entry of ``env_id`` in ``hyperparams/hhp.yml``."""
+    """The name and the whole entry of ``env_id`` in ``sb3_hhp/hyperparams/hhp.yml``."""
     table = yaml.safe_load(default_config_path().read_text())
     name = select_entry(table, env_id)
     return name, table[name]

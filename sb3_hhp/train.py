@@ -86,19 +86,12 @@ class ConfigError(ValueError):
 
 
 def default_config_path() -> Path:
-    """``hyperparams/hhp.yml``, found from the package so that any working directory works.
-
-    Looks in ``sb3_hhp/hyperparams/`` (a copy shipped inside the package) then in the source tree's
-    ``hyperparams/`` next to the package (a checkout or an editable install).
-    """
-    package = Path(__file__).resolve().parent
-    candidates = [package / "hyperparams" / f"{ALGO_NAME}.yml", package.parent / "hyperparams" / f"{ALGO_NAME}.yml"]
-    for candidate in candidates:
-        if candidate.is_file():
-            return candidate
-    raise ConfigError(
-        f"No default hyperparameter file: looked for {', '.join(map(str, candidates))}; pass one with --conf-file FILE"
-    )
+    """``sb3_hhp/hyperparams/hhp.yml``: package data, found from the package so that any working directory and an
+    installed wheel work."""
+    path = Path(__file__).resolve().parent / "hyperparams" / f"{ALGO_NAME}.yml"
+    if not path.is_file():
+        raise ConfigError(f"No default hyperparameter file: looked for {path}; pass one with --conf-file FILE")
+    return path
 
 
 def domain_of(env_id: str) -> Optional[str]:
@@ -681,7 +674,7 @@ def _parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=(
             "Every other option is RL Zoo's (listed below) and passed through; --algo is hhp and --conf-file\n"
-            "defaults to hyperparams/hhp.yml. Frequencies (--eval-freq, --save-freq, -n, -optimize's evaluations)\n"
+            "defaults to sb3_hhp/hyperparams/hhp.yml. Frequencies (--eval-freq, --save-freq, -n, -optimize's evaluations)\n"
             "count primitive env steps, as for every RL Zoo algorithm. RL Zoo's --eval-episodes is\n"
             "--periodic-eval-episodes here. The preference database is\n"
             "<log folder>/hhp/<ENV>_<run>/preferences.sqlite unless the file sets preference_db."

@@ -96,7 +96,7 @@ def test_grid_defaults_and_per_env_budgets(tmp_path):
     assert sweep.experiments[0] == Experiment("MiniGrid-Empty-5x5-v0", "ppo", 0, 2000)
     assert sweep.experiments[-1] == Experiment("MiniGrid-DoorKey-5x5-v0", "hhp", 1, 4000)
     assert sweep.eval_freq == {"MiniGrid-Empty-5x5-v0": 100, "MiniGrid-DoorKey-5x5-v0": 200}
-    assert sweep.baselines_conf == "hyperparams/baselines.yml"
+    assert sweep.baselines_conf == "sb3_hhp/hyperparams/baselines.yml"
 
 
 GRID = "envs: [MiniGrid-Empty-5x5-v0]\nvariants: [ppo]\nseeds: [0]\n"

@@ -28,7 +28,7 @@ SMALL: dict[str, Any] = dict(
     rnd_kwargs=dict(hidden_dim=64, refresh_interval=500), query_budget=10,
     subpolicy_kwargs=dict(learning_starts=50, buffer_size=2_000, batch_size=32, policy_kwargs=dict(net_arch=[64, 64])),
 )
-#: the stacked learners as the ``minigrid`` entry of hyperparams/hhp.yml runs them (grouped rounds, the inner view)
+#: the stacked learners as the ``minigrid`` entry of sb3_hhp/hyperparams/hhp.yml runs them (grouped rounds, the inner view)
 ENTRY_LEARNERS = dict(train_shared=True, max_updates=6, exploration_steps=500, grouped_rounds=True, view="inner")
 #: ... reading the cells as indicators, as the KeyCorridorS4R3 entry's learners do (walls, doors, keys, balls; closed,
 #: locked)

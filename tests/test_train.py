@@ -106,7 +106,7 @@ def test_domain_entry_serves_ids_without_their_own(tmp_path: Path, capsys: pytes
         ["--env", "MiniGrid-Empty-6x6-v0", "-n", "300", "--seed", "1", "--eval-episodes", "2", "--eval-freq", "-1",
          "--num-threads", "1", "--verbose", "0", "-f", str(tmp_path), "--hyperparams", "predictor_kwargs:dict(n_masks=10)"]
     )
-    assert "MiniGrid-Empty-6x6-v0" not in yaml.safe_load((REPO / "hyperparams" / "hhp.yml").read_text())
+    assert "MiniGrid-Empty-6x6-v0" not in yaml.safe_load((REPO / "sb3_hhp" / "hyperparams" / "hhp.yml").read_text())
     assert summary is not None and summary["env"] == "MiniGrid-Empty-6x6-v0"
     assert summary["config_entry"] == "minigrid"
     assert summary["query_budget"] == 100  # the minigrid entry's value

@@ -23,7 +23,7 @@ from sb3_hhp.oracles.scripted import MiniGridScriptedOracle
 
 TASKS = ("MiniGrid-DoorKey-16x16-v0", "MiniGrid-KeyCorridorS4R3-v0", "MiniGrid-ObstructedMaze-1Q-v1",
          "MiniGrid-MultiRoom-N12-S10-v0")
-#: the tasks whose goal space tells colours apart (hyperparams/hhp.yml: goal_space minigrid_color)
+#: the tasks whose goal space tells colours apart (sb3_hhp/hyperparams/hhp.yml: goal_space minigrid_color)
 COLORED = ("MiniGrid-ObstructedMaze-1Q-v1",)
 
 

@@ -48,7 +48,7 @@ def default_subpolicy_kwargs(action_space: spaces.Space) -> dict[str, Any]:
     if isinstance(action_space, spaces.Discrete):
         # a subpolicy lives a few thousand of its own steps: its target net follows every 250 (2,000 in the paper)
         # one-step targets as in the paper; subpolicy_kwargs=dict(n_steps=8) gives n-step returns, which the
-        # MiniGrid entry of hyperparams/hhp.yml uses (benchmarks/README.md, "Subpolicy learning")
+        # MiniGrid entry of sb3_hhp/hyperparams/hhp.yml uses (benchmarks/README.md, "Subpolicy learning")
         kwargs.update(target_update_interval=250, exploration_fraction=1.0,
                       exploration_initial_eps=1.0, exploration_final_eps=0.05, n_steps=1)
     return kwargs
