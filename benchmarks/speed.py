@@ -100,7 +100,7 @@ import sb3_hhp
 from sb3_hhp import HhP
 from sb3_hhp.extras import import_extra
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env
-from sb3_hhp.hhp.hhp import SUBGOAL_LEARNER_DEFAULTS
+from sb3_hhp.hhp.arguments import SUBGOAL_LEARNER_DEFAULTS
 from sb3_hhp.hierarchy.learners import StackedDQN, default_subpolicy_kwargs
 from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry
 
@@ -438,7 +438,7 @@ def distinct_states(env_id: str, n: int, seed: int) -> list[np.ndarray]:
 def one_subgoal_count(args: argparse.Namespace) -> dict[str, Any]:
     """In this process: HhP with ``args.k`` sub-goals handed in; seconds per primitive step and peak memory."""
     _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
-    kwargs.update(oracle="scripted", discovery="none", subgoals=distinct_states(args.env, args.k, args.seed))
+    kwargs.update(oracle="scripted", discovery_kwargs=dict(strategy="none", subgoals=distinct_states(args.env, args.k, args.seed)))
     model = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **kwargs)
     fps = timed_window(model, args.start, args.stop)
     return dict(k=args.k, fps=round(fps, 1), ms_per_step=round(1000 / fps, 3),

@@ -1,9 +1,9 @@
 """The paper's ablations side by side (Table 1), on a short run.
 
 - ``HhP``: preferences and curiosity, curiosity-driven sub-goal discovery (CSD);
-- ``Cur``: no preferences (``use_preferences=False``): the meta-controller's reward is R_e alone;
+- ``Cur``: no preferences (``query_budget=0``: no label), the meta-controller's reward is R_e alone;
 - ``Pref``: no curiosity (``use_curiosity=False``): no RND, no intrinsic reward, alpha = 0;
-- ``random``: sub-goals discovered at random (``discovery="random"``) instead of by CSD.
+- ``random``: sub-goals discovered at random (``discovery_kwargs=dict(strategy="random")``) instead of by CSD.
 
 Each variant trains with the same seed and settings, then is evaluated on the same episodes. Short
 runs only show that the switches work; compare learning curves on long runs (see benchmarks/).
@@ -29,9 +29,9 @@ from small_settings import SMALL_ENV, SMALL_SETTINGS
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "HhP": {},
-    "Cur": dict(use_preferences=False),
+    "Cur": dict(query_budget=0),
     "Pref": dict(use_curiosity=False),
-    "random": dict(discovery="random"),
+    "random": dict(discovery_kwargs=dict(strategy="random")),
 }
 
 

@@ -20,7 +20,7 @@ def main() -> None:
 
     from sb3_hhp import HhP
 
-    from sb3_hhp.hhp.hhp import PREDICTOR_DEFAULTS
+    from sb3_hhp.hhp.arguments import PREDICTOR_DEFAULTS
     from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS
 
     defaults = inspect.signature(HhP).parameters

@@ -12,7 +12,11 @@ def __getattr__(name: str):
         from sb3_hhp import hhp
 
         return getattr(hhp, name)
+    if name == "HierarchicalEnv":
+        from sb3_hhp.hierarchy import HierarchicalEnv
+
+        return HierarchicalEnv
     raise AttributeError(f"module 'sb3_hhp' has no attribute {name!r}")
 
 
-__all__ = ["HhP", "PAPER_KWARGS", "__version__"]
+__all__ = ["HhP", "HierarchicalEnv", "PAPER_KWARGS", "__version__"]

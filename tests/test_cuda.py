@@ -23,7 +23,7 @@ pytestmark = pytest.mark.skipif(DEVICE == "cuda" and not th.cuda.is_available(),
 
 DOORKEY = "MiniGrid-DoorKey-5x5-v0"
 SMALL: dict[str, Any] = dict(
-    buffer_size=2_000, learning_starts=300, batch_size=32, max_subgoal_steps=30, target_update_interval=50,
+    buffer_size=2_000, learning_starts=300, batch_size=32, max_subgoal_steps=30, meta_kwargs=dict(target_update_interval=50),
     policy_kwargs=dict(net_arch=[64]), predictor_kwargs=dict(hidden_dim=64, batch_size=32, n_masks=20),
     rnd_kwargs=dict(hidden_dim=64, refresh_interval=500), query_budget=10,
     subpolicy_kwargs=dict(learning_starts=50, buffer_size=2_000, batch_size=32, policy_kwargs=dict(net_arch=[64, 64])),
@@ -64,8 +64,8 @@ def moved(before: dict[str, list[th.Tensor]], after: dict[str, list[th.Tensor]])
                          ids=["stacked", "stacked-one-hot", "heads"])
 def test_hhp_trains_on_cuda_and_acts_the_same_on_the_cpu(tmp_path, learner: str, learner_kwargs: dict) -> None:
     env = make_vec_env(DOORKEY, n_envs=4, wrapper_class=wrap_env, seed=0)
-    model = HhP("MlpPolicy", env, device=DEVICE, seed=0, subgoal_learner=learner,
-                subgoal_learner_kwargs=learner_kwargs, **SMALL)
+    model = HhP("MlpPolicy", env, device=DEVICE, seed=0,
+                subgoal_learner_kwargs={**(learner_kwargs), 'kind': learner}, **SMALL)
     assert model.device.type == DEVICE
     assert (model.subpolicies._one_hot is not None) == ("one_hot" in learner_kwargs)  # the cells read as indicators
     before = {name: [tensor.detach().clone() for tensor in found] for name, found in tensors(model).items()}

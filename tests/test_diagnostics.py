@@ -161,8 +161,8 @@ def test_the_oracles_chooser_takes_the_plans_first_choosable_milestone_not_ruled
                 keys.append(space.key(obs))
             obs, *_ = env.step(int(action))
     assert (EMPTY, KEY, 0) in keys and len(keys) >= 3
-    model = HhP("MlpPolicy", gym.make("MiniGrid-DoorKey-5x5-v0"), discovery="none", subgoals=given, seed=0,
-                buffer_size=500, policy_kwargs=dict(net_arch=[16]))
+    model = HhP("MlpPolicy", gym.make("MiniGrid-DoorKey-5x5-v0"), seed=0,
+                buffer_size=500, policy_kwargs=dict(net_arch=[16]), discovery_kwargs=dict(strategy="none", subgoals=given))
     oracle = make_oracle("scripted", model.goal_space, model.primitive_observation_space)
     obs, _ = env.reset(seed=3)
     planned: list = []

@@ -116,7 +116,7 @@ def test_hhp_trains_on_a_fixed_layout_image_env_with_cnn_policy(tmp_path) -> Non
     frames = [room.reset()[0]] + [room.step(action)[0] for action in (3, 3, 1, 1)]  # user sub-goals: a walk to the goal
     model = HhP("CnnPolicy", PixelRoom(), oracle="synthetic", query_budget=5, predictor_kwargs=dict(n_masks=2),
                 learning_starts=50, batch_size=16,
-                seed=0, subgoals=frames[2:], subpolicy_kwargs=dict(learning_starts=50, batch_size=16, buffer_size=2_000))
+                seed=0, subpolicy_kwargs=dict(learning_starts=50, batch_size=16, buffer_size=2_000), discovery_kwargs=dict(subgoals=frames[2:]))
     assert isinstance(model.goal_space, ImageGoalSpace)
     model.learn(300)
     assert model.num_timesteps >= 300 and len(model.subgoals) >= 3

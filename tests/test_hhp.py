@@ -21,7 +21,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecFrameStack, VecNorm
 
 from sb3_hhp import HhP
 from sb3_hhp.goals import MiniGridGoalSpace, wrap_env
-from sb3_hhp.hhp.hhp import COMPONENTS_FILE, MOVED_ARGUMENTS
+from sb3_hhp.hhp.hhp import COMPONENTS_FILE
 from sb3_hhp.hierarchy.learners import OneHotCodes, Overview, StackedDQN
 from sb3_hhp.hierarchy.options import EpisodeTrace
 from sb3_hhp.oracles import Label
@@ -31,7 +31,6 @@ from sb3_hhp.subgoal_table import SubgoalTable
 th.set_num_threads(1)
 
 DOORKEY = "MiniGrid-DoorKey-5x5-v0"
-DATA = pathlib.Path(__file__).parent / "data"
 EMPTY = "MiniGrid-Empty-5x5-v0"
 #: tiny networks and buffers
 TINY: dict[str, Any] = dict(
@@ -39,7 +38,7 @@ TINY: dict[str, Any] = dict(
     learning_starts=300,
     batch_size=32,
     max_subgoal_steps=30,
-    target_update_interval=50,
+    meta_kwargs=dict(target_update_interval=50),
     policy_kwargs=dict(net_arch=[64]),
     predictor_kwargs=dict(hidden_dim=64, batch_size=32, n_masks=20),
     rnd_kwargs=dict(hidden_dim=64, refresh_interval=500),
@@ -47,7 +46,7 @@ TINY: dict[str, Any] = dict(
     subgoal_learner_kwargs=dict(exploration_steps=500),
 )
 #: the ``*_kwargs`` arguments that :func:`tiny` merges key by key
-GROUPED = ("query_kwargs", "predictor_kwargs", "subgoal_learner_kwargs")
+GROUPED = ("query_kwargs", "predictor_kwargs", "subgoal_learner_kwargs", "meta_kwargs", "discovery_kwargs")
 
 
 def tiny(**kwargs: Any) -> dict[str, Any]:
@@ -132,13 +131,13 @@ def test_a_walk_that_comes_back_takes_its_best_untried_action(break_cycles: bool
     stochastic policy is that policy with epsilon-random actions (epsilon 0 here: the same actions)."""
     env = wrap_env(gym.make(DOORKEY))
     obs, _ = env.reset(seed=0)
-    model = make_model(discovery="none", subgoals=[obs], break_cycles=break_cycles)
+    model = make_model(meta_kwargs=dict(break_cycles=break_cycles), discovery_kwargs=dict(strategy="none", subgoals=[obs]))
     q_row = np.array([3.0, 1.0, 2.0, 0.5, 0.4, 0.3, 0.2])  # greedy: turn left, round and round in one cell
     monkeypatch.setattr(model.subpolicies, "q_values",
                         lambda goals, batch: th.as_tensor(np.tile(q_row, (len(goals), 1)), device=model.device))
     monkeypatch.setattr(model.subpolicies, "allowed_actions", lambda batch: None)
     monkeypatch.setattr(model.subpolicies, "exploration_rate", lambda goal: 0.0)
-    monkeypatch.setattr("sb3_hhp.hhp.hhp.option_terminal", lambda space, key, goal, steps, limit: (False, steps >= limit))
+    monkeypatch.setattr("sb3_hhp.hhp.acting.option_terminal", lambda space, key, goal, steps, limit: (False, steps >= limit))
     state, seen, actions = None, [], []
     for t in range(16):
         action, state = model.predict(obs, state=state, episode_start=np.array([t == 0]), deterministic=deterministic)
@@ -179,7 +178,7 @@ def test_a_meta_controller_back_in_a_state_takes_its_best_untried_choice(trained
     monkeypatch.setattr(trained, "exploration_rate", 0.0)
     # every existing sub-goal choosable everywhere: the test is of the rule, whatever the goal space would mask
     monkeypatch.setitem(vars(trained), "action_mask", lambda observations: np.asarray(trained.valid_actions))
-    monkeypatch.setattr("sb3_hhp.hhp.hhp.option_terminal", lambda space, key, goal, steps, limit: (steps > 0, False))
+    monkeypatch.setattr("sb3_hhp.hhp.acting.option_terminal", lambda space, key, goal, steps, limit: (steps > 0, False))
     obs, other = observations()[:1], observations()[1:2]
     with th.no_grad():
         q_values = trained.q_net(trained.policy.obs_to_tensor(obs)[0]).cpu().numpy()[0, : len(trained.subgoals)]
@@ -370,7 +369,7 @@ def test_with_success_bonus_best_no_question_compares_the_task_solved() -> None:
     """The task's own goal is judged by the extrinsic reward alone: it is in no question (and is in some without)."""
     solved = []
     for success_bonus in ("predicted", "best"):
-        model = make_model(EMPTY, query_budget=40, success_bonus=success_bonus)
+        model = make_model(EMPTY, query_budget=40, meta_kwargs=dict(success_bonus=success_bonus))
         model.learn(3_000)
         success = model.success_goal
         assert success is not None and model.query_selector.used > 0
@@ -479,7 +478,7 @@ def test_with_exact_bonus_the_target_adds_the_next_states_bonus_and_the_choice_f
 def test_with_exact_bonus_a_model_learns_saves_and_loads(tmp_path) -> None:
     """``exact_bonus`` through ``learn`` (the meta-controller's updates read the bonus) and a save: the loaded model
     keeps the option and chooses as the saved one."""
-    model = make_model(EMPTY, exact_bonus=True)
+    model = make_model(EMPTY, meta_kwargs=dict(exact_bonus=True))
     model.learn(1_500)
     assert len(model.predictor) > 0 and model._n_updates > 0
     model.save(tmp_path / "exact.zip")
@@ -652,11 +651,16 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
         (dict(env=EMPTY, beta=1.5), r"beta must be in \[0, 1\], got 1.5"),
         (dict(env=EMPTY, beta=-0.1), r"beta must be in \[0, 1\], got -0.1"),
         (dict(env=EMPTY, predictor_kwargs=dict(dropout=1.0)), r"dropout'\] must be in \[0, 1\), got 1.0"),
-        (dict(env=EMPTY, center_bonus="median"), "center_bonus must be True / 'mean', 'max' or False, got 'median'"),
-        (dict(env=EMPTY, success_bonus="neutral"), "success_bonus must be 'predicted' or 'best', got 'neutral'"),
-        (dict(env=EMPTY, exact_bonus="yes"), "exact_bonus must be True or False, got 'yes'"),
-        (dict(env=EMPTY, discovery="none"), "subgoals="),
-        (dict(env=EMPTY, discovery="everything"), "discovery must be"),
+        (dict(env=EMPTY, meta_kwargs=dict(center_bonus="median")),
+         r"meta_kwargs\['center_bonus'\] must be one of True, False, 'mean', 'max', got 'median'"),
+        (dict(env=EMPTY, meta_kwargs=dict(success_bonus="neutral")),
+         r"meta_kwargs\['success_bonus'\] must be one of 'predicted', 'best', got 'neutral'"),
+        (dict(env=EMPTY, meta_kwargs=dict(exact_bonus="yes")), r"meta_kwargs\['exact_bonus'\] must be one of True, False"),
+        (dict(env=EMPTY, meta_kwargs=dict(n_opt=0)), r"meta_kwargs\['n_opt'\] must be >= 1, got 0"),
+        (dict(env=EMPTY, meta_kwargs=dict(tau=0.5, wizard=1)), "meta_kwargs has no key 'wizard'; its keys are"),
+        (dict(env=EMPTY, discovery_kwargs=dict(strategy="none")), "strategy='none' needs sub-goals.*subgoals="),
+        (dict(env=EMPTY, discovery_kwargs=dict(strategy="everything")), r"discovery_kwargs\['strategy'\] must be one of"),
+        (dict(env=EMPTY, subgoal_learner_kwargs=dict(kind="wide")), r"subgoal_learner_kwargs\['kind'\] must be one of"),
         (dict(env=EMPTY, subgoal_learner_kwargs=dict(share_experience=False, train_shared=True)),
          "needs share_experience=True"),
         (dict(env=EMPTY, subgoal_learner_kwargs=dict(view=4)), "view.*odd integer"),
@@ -837,7 +841,7 @@ def test_carry_relabel_reaches_the_learners_replay_and_saves(tmp_path) -> None:
     model.save(tmp_path / "relabelled")
     assert HhP.load(tmp_path / "relabelled").subpolicies.replay.carry_relabel == 0.5
     with pytest.raises(ValueError, match="carry_relabel.*stacked"):
-        make_model(subgoal_learner="heads", subgoal_learner_kwargs=dict(carry_relabel=0.5))
+        make_model(subgoal_learner_kwargs=dict(carry_relabel=0.5, kind="heads"))
     with pytest.raises(ValueError, match=r"carry_relabel'\] must be in \[0, 1\]"):
         make_model(subgoal_learner_kwargs=dict(carry_relabel=-0.1))
 
@@ -898,33 +902,12 @@ def test_load_refuses_a_zip_whose_components_are_garbage(tmp_path, trained: HhP)
         HhP.load(path)
 
 
-def test_a_model_saved_with_one_sb3_model_per_subgoal_is_refused_with_a_reason(tmp_path, trained: HhP) -> None:
-    """Saves made before the shared replay held a list of SB3 models' states under "subpolicies": loading one says
-    that this version cannot, instead of failing somewhere inside torch."""
-    import io
-
-    path = tmp_path / "old.zip"
-    trained.save(path)
-    with zipfile.ZipFile(path) as archive:
-        members = {name: archive.read(name) for name in archive.namelist()}
-    components = th.load(io.BytesIO(members[COMPONENTS_FILE]), weights_only=False)
-    components["subpolicies"] = [{"policy": {}, "optimizers": [], "num_steps": 0}]  # the old layout
-    buffer = io.BytesIO()
-    th.save(components, buffer)
-    members[COMPONENTS_FILE] = buffer.getvalue()
-    with zipfile.ZipFile(path, "w") as archive:
-        for name, data in members.items():
-            archive.writestr(name, data)
-    with pytest.raises(ValueError, match="older sb3_hhp.*train the model again"):
-        HhP.load(path)
-
-
 # ---------------------------------------------------------------------------- ablations
 
 
-def test_without_preferences_no_query_is_asked() -> None:
-    model = make_model(EMPTY, use_preferences=False)
-    assert model.oracle is None
+def test_without_a_budget_no_query_is_asked_and_the_reward_is_the_extrinsic_return() -> None:
+    """The paper's "Cur" ablation: no question, no label, and eq. 3's reward is R_e alone."""
+    model = make_model(EMPTY, query_budget=0)
     model.learn(600)
     assert model.query_selector.used == 0
     assert model.store.count_asked() == 0 and len(model.predictor) == 0
@@ -992,8 +975,8 @@ def test_train_shared_gives_every_subpolicy_its_gradient_steps(train_shared: boo
     """Without ``train_shared`` only the acting sub-goal counts a step as a learning tick; with it, every
     sub-goal does, and all due sub-goals update together at the train frequency."""
     kwargs = {**TINY.get("subpolicy_kwargs", {}), "train_freq": 2, "learning_starts": 1, "batch_size": 4}
-    model = make_model(EMPTY, use_curiosity=False, subpolicy_kwargs=kwargs, subgoal_learner="stacked",
-                       subgoal_learner_kwargs=dict(train_shared=train_shared))
+    model = make_model(EMPTY, use_curiosity=False, subpolicy_kwargs=kwargs,
+                       subgoal_learner_kwargs=dict(train_shared=train_shared, kind="stacked"))
     model.learn(600)
     learners = model.subpolicies
     assert len(model.subgoals) >= 2
@@ -1044,7 +1027,7 @@ def test_active_subpolicy_stores_a_give_up_as_a_timeout_and_a_failed_episode_end
     carrying_a_key = observations(EMPTY)[0].copy()
     center = carrying_a_key.shape[0] // 2
     carrying_a_key[center, center] = (OBJECT_TO_IDX["key"], 0, 0)  # "carrying a key": never reached in an empty room
-    model = make_model(EMPTY, use_curiosity=False, discovery="none", max_subgoal_steps=3, subgoals=[carrying_a_key])
+    model = make_model(EMPTY, use_curiosity=False, max_subgoal_steps=3, discovery_kwargs=dict(strategy="none", subgoals=[carrying_a_key]))
     replay, options = model.subpolicies.replay, model.options
     before = replay.size()
     end, _, _ = run_option(model, 0, seed=0)
@@ -1083,7 +1066,7 @@ def test_with_curiosity_intrinsic_rewards_are_not_all_zero() -> None:
 
 
 def test_random_discovery() -> None:
-    model = make_model(DOORKEY, discovery="random", discovery_kwargs=dict(min_visits=1))
+    model = make_model(DOORKEY, discovery_kwargs=dict(min_visits=1, strategy="random"))
     assert model.discovery.strategy == "random"
     model.learn(1_000)
     sources = Counter(goal.source for goal in model.subgoals)
@@ -1103,7 +1086,7 @@ def test_no_discovery_uses_only_the_subgoals_handed_in() -> None:
         obs, *_ = env.step(action)
     given, keys = given[:3], keys[:3]
     assert len(set(keys)) == len(given) >= 2
-    model = make_model(DOORKEY, discovery="none", subgoals=given)
+    model = make_model(DOORKEY, discovery_kwargs=dict(strategy="none", subgoals=given))
     assert [goal.key for goal in model.subgoals] == keys
     assert all(goal.source == "user" for goal in model.subgoals)
     model.learn(800)
@@ -1155,7 +1138,7 @@ def test_meta_controller_chooses_only_choosable_subgoals() -> None:
         for deterministic in (True, False):
             _, (goals, _, *_) = model.predict(obs, deterministic=deterministic)
             assert allowed[goals[0]]
-    unmasked = make_model(DOORKEY, mask_subgoals=False)
+    unmasked = make_model(DOORKEY, meta_kwargs=dict(mask_subgoals=False))
     unmasked.learn(300)
     assert unmasked.action_mask(states) is unmasked.valid_actions
 
@@ -1167,7 +1150,7 @@ def test_predictor_reads_goal_space_features_or_observations() -> None:
     featured = make_model(DOORKEY)
     assert featured.predictor.observation_space.shape == featured.goal_space.features(states).shape[1:]
     np.testing.assert_array_equal(featured.predictor_inputs(states), featured.goal_space.features(states))
-    raw = make_model(DOORKEY, predictor_input="observation")
+    raw = make_model(DOORKEY, predictor_kwargs=dict(input="observation"))
     assert raw.predictor.observation_space == raw.primitive_observation_space
     np.testing.assert_array_equal(raw.predictor_inputs(states), states)
 
@@ -1176,9 +1159,9 @@ def test_predictor_reads_goal_space_features_or_observations() -> None:
             return None
 
     with pytest.raises(ValueError, match="predictor_input='observation'"):
-        make_model(DOORKEY, goal_space=NoFeatures(), predictor_input="features")
+        make_model(DOORKEY, goal_space=NoFeatures(), predictor_kwargs=dict(input="features"))
     with pytest.raises(ValueError, match="predictor_input"):
-        make_model(DOORKEY, predictor_input="pixels")
+        make_model(DOORKEY, predictor_kwargs=dict(input="pixels"))
 
 
 def test_meta_controller_reads_goal_space_features_or_observations() -> None:
@@ -1189,8 +1172,8 @@ def test_meta_controller_reads_goal_space_features_or_observations() -> None:
 
     from sb3_hhp.hhp.policies import GoalSpaceFeatures
 
-    assert isinstance(make_model(DOORKEY, meta_input="features").q_net.features_extractor, GoalSpaceFeatures)
-    model = make_model(DOORKEY, meta_input="auto")
+    assert isinstance(make_model(DOORKEY, meta_kwargs=dict(input="features")).q_net.features_extractor, GoalSpaceFeatures)
+    model = make_model(DOORKEY, meta_kwargs=dict(input="auto"))
     assert isinstance(model.q_net.features_extractor, GoalSpaceFeatures)
     states = observations(seeds=tuple(range(40)))
     features = model.goal_space.features(states)
@@ -1201,18 +1184,18 @@ def test_meta_controller_reads_goal_space_features_or_observations() -> None:
     for i, j in same:
         np.testing.assert_allclose(q_values[i], q_values[j])
     assert isinstance(make_model(DOORKEY).q_net.features_extractor, GoalSpaceFeatures)
-    assert isinstance(make_model(DOORKEY, meta_input="observation").q_net.features_extractor, FlattenExtractor)
+    assert isinstance(make_model(DOORKEY, meta_kwargs=dict(input="observation")).q_net.features_extractor, FlattenExtractor)
 
     class NoFeatures(MiniGridGoalSpace):
         def features(self, obs):
             return None
 
     with pytest.raises(ValueError, match="meta_input='observation'"):
-        make_model(DOORKEY, goal_space=NoFeatures(), meta_input="features", predictor_input="observation")
+        make_model(DOORKEY, goal_space=NoFeatures(), predictor_kwargs=dict(input="observation"), meta_kwargs=dict(input="features"))
     with pytest.raises(ValueError, match="features_extractor_class"):
-        make_model(DOORKEY, meta_input="features", policy_kwargs=dict(features_extractor_class=FlattenExtractor))
+        make_model(DOORKEY, policy_kwargs=dict(features_extractor_class=FlattenExtractor), meta_kwargs=dict(input="features"))
     with pytest.raises(ValueError, match="meta_input"):
-        make_model(DOORKEY, meta_input="pixels")
+        make_model(DOORKEY, meta_kwargs=dict(input="pixels"))
 
 
 # ---------------------------------------------------------------------------- resume
@@ -1226,7 +1209,7 @@ def test_resume_with_a_preference_database(tmp_path, budget: int, first_steps: i
     db = str(tmp_path / "prefs.sqlite")
     predictor_kwargs = dict(hidden_dim=64, buffer_size=budget + 100)  # room to see a label added twice
     model = make_model(DOORKEY, preference_db=db, query_budget=budget, predictor_kwargs=predictor_kwargs,
-                       mask_subgoals=False, subgoal_learner="heads")  # heads: more sub-goals found in these few steps
+                       subgoal_learner_kwargs=dict(kind="heads"), meta_kwargs=dict(mask_subgoals=False))  # heads: more sub-goals found in these few steps
     model.learn(first_steps)
     used_before = model.query_selector.used
     assert 0 < used_before <= budget
@@ -1269,8 +1252,8 @@ def test_stored_questions_show_the_room_drawn_from_facts_without_a_render_per_ch
 
     renders = []
     monkeypatch.setattr(MiniGridGoalSpace, "render", lambda self, env: renders.append(1))
-    model = make_model(DOORKEY, preference_db=str(tmp_path / "prefs.sqlite"), mask_subgoals=False,
-                       subgoal_learner="heads")
+    model = make_model(DOORKEY, preference_db=str(tmp_path / "prefs.sqlite"),
+                       subgoal_learner_kwargs=dict(kind="heads"), meta_kwargs=dict(mask_subgoals=False))
     assert model.record_images is False
     model.learn(2_000)
     questions = [model.store.get_query(query_id) for query_id in model.store.asked_ids()]
@@ -1286,7 +1269,7 @@ def test_stored_questions_show_the_room_drawn_from_facts_without_a_render_per_ch
 
 def test_the_labeling_pages_gallery_is_written_into_the_preference_file(tmp_path) -> None:
     db = str(tmp_path / "prefs.sqlite")
-    model = make_model(DOORKEY, preference_db=db, subgoal_learner="heads")  # heads: more sub-goals in these few steps
+    model = make_model(DOORKEY, preference_db=db, subgoal_learner_kwargs=dict(kind="heads"))  # heads: more sub-goals in these few steps
     model.gallery_every = 1  # after every episode
     model.learn(600)
     with PreferenceStore(db, create=False) as other:  # as the labeling server reads it
@@ -1296,23 +1279,31 @@ def test_the_labeling_pages_gallery_is_written_into_the_preference_file(tmp_path
     assert [record["name"] for record in gallery] == [model.goal_space.describe(goal.key) for goal in model.subgoals]
 
 
-def test_a_model_saved_with_the_ungrouped_arguments_loads_as_it_was_trained(tmp_path) -> None:
-    """``tests/data/hhp_saved_with_ungrouped_arguments.zip`` was saved by commit 8f8c82c, the last before t_qry,
-    n_masks, b_similarity, ... were grouped into ``*_kwargs``: ``HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0"),
-    seed=0, t_qry=0.1, query_mode="fixed", n_masks=7, dropout=0.2, b_similarity=0.3, csd_min_visits=3,
-    max_subgoal_updates=5, subpolicy_exploration_steps=123, query_budget=5, ...)``, ``learn(300)``, ``save``."""
-    model = HhP.load(DATA / "hhp_saved_with_ungrouped_arguments.zip", env=gym.make("MiniGrid-Empty-5x5-v0"))
+def test_grouped_settings_survive_a_save_and_reach_their_components(tmp_path) -> None:
+    """Each ``*_kwargs`` key reaches its component, and a saved model loads with the same settings."""
+    model = HhP("MlpPolicy", gym.make("MiniGrid-Empty-5x5-v0"), seed=0, query_budget=5,
+                query_kwargs=dict(threshold=0.1, mode="fixed"), predictor_kwargs=dict(n_masks=7, dropout=0.2),
+                discovery_kwargs=dict(similarity_threshold=0.3, min_visits=3),
+                subgoal_learner_kwargs=dict(max_updates=5, exploration_steps=123),
+                meta_kwargs=dict(n_opt=3, target_update_interval=77, capacity=4, break_cycles=False))
     assert (model.query_selector.threshold, model.query_selector.mode) == (0.1, "fixed")
     assert (model.predictor.n_masks, model.predictor.dropout) == (7, 0.2)
     assert (model.discovery.similarity_threshold, model.discovery.min_visits, model.discovery.percentile) == (0.3, 3, 5.0)
     assert (model.subpolicies.max_updates, model.subpolicies.exploration_steps) == (5, 123)
-    assert model.discovery_kwargs == dict(percentile=5.0, min_visits=3, similarity_threshold=0.3, before_success=False,
-                                          percentile_of="visited")  # options added since: their defaults, as trained
-    assert not any(hasattr(model, name) for name in MOVED_ARGUMENTS)  # grouped, not kept twice
-    model.learn(200, reset_num_timesteps=False)
-    model.save(tmp_path / "again")  # saved again, it loads with the same settings through the new arguments
-    again = HhP.load(tmp_path / "again")
+    assert (model.gradient_steps, model.target_update_interval, model.action_space.n, model.break_cycles) == (3, 77, 4, False)
+    model.learn(300)
+    model.save(tmp_path / "grouped")
+    again = HhP.load(tmp_path / "grouped")
     assert (again.predictor.n_masks, again.subpolicies.max_updates, again.query_selector.threshold) == (7, 5, 0.1)
+    assert (again.gradient_steps, again.target_update_interval, again.break_cycles) == (3, 77, False)
+
+
+def test_the_constructor_keeps_to_thirty_named_arguments() -> None:
+    """SB3's DQN takes about 25; HhP's other settings are grouped per component (sb3_hhp.hhp.arguments)."""
+    import inspect
+
+    names = [name for name in inspect.signature(HhP.__init__).parameters if name != "self"]
+    assert len(names) <= 30, names
 
 
 def test_discovery_percentile_of_reaches_csd() -> None:
@@ -1349,7 +1340,7 @@ def test_resume_feeds_labels_answered_after_the_save(tmp_path) -> None:
 
     db = str(tmp_path / "prefs.sqlite")
     model = make_model(DOORKEY, preference_db=db, predictor_kwargs=dict(hidden_dim=64, buffer_size=100),
-                       subgoal_learner="heads")  # heads: more sub-goals found in these few steps
+                       subgoal_learner_kwargs=dict(kind="heads"))  # heads: more sub-goals found in these few steps
     model.learn(600)
     model.save(tmp_path / "hhp")
     n_labels = len(model.predictor)
@@ -1370,7 +1361,7 @@ def test_resume_feeds_labels_answered_after_the_save(tmp_path) -> None:
 
 
 def test_subgoal_set_grows_past_the_initial_capacity() -> None:
-    model = make_model(EMPTY, subgoal_capacity=2)
+    model = make_model(EMPTY, meta_kwargs=dict(capacity=2))
     obs = observations(EMPTY)
     env = wrap_env(gym.make(EMPTY))
     env.reset(seed=0)

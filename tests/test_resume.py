@@ -22,7 +22,7 @@ ENV = "MiniGrid-DoorKey-5x5-v0"
 
 def make_model(seed: int = 0, **kwargs) -> HhP:
     env = make_vec_env(ENV, n_envs=2, wrapper_class=wrap_env, seed=seed)
-    return HhP("MlpPolicy", env, seed=seed, oracle="scripted", subgoal_learner="stacked", learning_starts=100,
+    return HhP("MlpPolicy", env, seed=seed, oracle="scripted", learning_starts=100,
                **{"buffer_size": 20_000, **kwargs})
 
 

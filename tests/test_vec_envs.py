@@ -22,7 +22,7 @@ th.set_num_threads(1)
 
 EMPTY = "MiniGrid-Empty-5x5-v0"
 TINY: dict[str, Any] = dict(
-    buffer_size=2_000, learning_starts=300, batch_size=32, max_subgoal_steps=30, target_update_interval=50,
+    buffer_size=2_000, learning_starts=300, batch_size=32, max_subgoal_steps=30, meta_kwargs=dict(target_update_interval=50),
     policy_kwargs=dict(net_arch=[64]), predictor_kwargs=dict(hidden_dim=64, batch_size=32, n_masks=20),
     rnd_kwargs=dict(hidden_dim=64, refresh_interval=500), subgoal_learner_kwargs=dict(exploration_steps=500), query_budget=10,
     subpolicy_kwargs=dict(learning_starts=50, buffer_size=2_000, batch_size=32, policy_kwargs=dict(net_arch=[64, 64])),

@@ -237,7 +237,7 @@ def hhp_learner(args: argparse.Namespace, settings: dict[str, Any]) -> Any:
     goal = handed_in_subgoal(wrap_env(gym.make(args.env)), OBJECTS[args.object], args.seed)
     env_kwargs = {"max_steps": args.train_max_steps} if args.train_max_steps else None
     envs = make_vec_env(args.env, n_envs=args.n_envs, seed=args.seed, wrapper_class=wrap_env, env_kwargs=env_kwargs)
-    kwargs.update(discovery="none", subgoals=[goal], use_preferences=False, max_subgoal_steps=args.max_steps)
+    kwargs.update(query_budget=0, max_subgoal_steps=args.max_steps, discovery_kwargs=dict(strategy="none", subgoals=[goal]))
     return HhP("MlpPolicy", envs, seed=args.seed, **kwargs)
 
 

@@ -23,11 +23,11 @@ NAMED_GOAL_SPACES = {
 }
 
 
-def wrap_env(env: gym.Env, outer_ring: bool = False) -> gym.Env:
-    """Give a raw env the observation its goal space reads (MiniGrid: :class:`MiniGridEgocentricObs`, with its
-    ``outer_ring`` for models saved before it was left out; Fetch: :class:`FetchFlatObs`)."""
+def wrap_env(env: gym.Env) -> gym.Env:
+    """Give a raw env the observation its goal space reads (MiniGrid: :class:`MiniGridEgocentricObs`; Fetch:
+    :class:`FetchFlatObs`)."""
     if find_minigrid(env) is not None and not MiniGridGoalSpace.supports(env):
-        return MiniGridEgocentricObs(env, outer_ring=outer_ring)
+        return MiniGridEgocentricObs(env)
     if find_fetch(env) is not None and isinstance(env.observation_space, gym.spaces.Dict):
         return FetchFlatObs(env)
     return env

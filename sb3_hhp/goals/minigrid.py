@@ -136,23 +136,23 @@ def encode_grid(grid: Grid) -> np.ndarray:
     return flat.reshape(grid.height, grid.width, 3).transpose(1, 0, 2)
 
 
-def egocentric_size(width: int, height: int, outer_ring: bool = False) -> int:
+def egocentric_size(width: int, height: int) -> int:
     """The side of the egocentric canvas of a ``width`` x ``height`` grid: ``2 * max(W, H) - 3``. From the centre
     of a ``2 * max(W, H) - 1`` canvas the agent sees the whole grid wherever it stands; MiniGrid's grids are
     walled, so it never stands on their outermost cells and that canvas's outer ring is always empty: it is left
     out (a quarter of the inputs of DoorKey-8x8's 15x15 canvas, which networks' first layers would read for
-    nothing). ``outer_ring``: the canvas with that ring, which models saved before it was left out read."""
-    return 2 * max(width, height) - 1 if outer_ring else max(1, 2 * max(width, height) - 3)
+    nothing)."""
+    return max(1, 2 * max(width, height) - 3)
 
 
-def egocentric_grid(base: MiniGridEnv, outer_ring: bool = False) -> np.ndarray:
+def egocentric_grid(base: MiniGridEnv) -> np.ndarray:
     """The full grid encoding (W, H, 3) rotated so the agent is at the centre facing up, in a square canvas of side
     :func:`egocentric_size` indexed ``[x, y]``; cells outside the grid are 0 ("unseen"). (On a grid without walls,
     cells beyond the canvas would be cut off.)"""
     full = encode_grid(base.grid)  # (W, H, 3), [x, y]
     ax, ay = (int(v) for v in base.agent_pos)
     full[ax, ay] = base.carrying.encode() if base.carrying is not None else _EMPTY_CELL
-    size = egocentric_size(base.width, base.height, outer_ring)
+    size = egocentric_size(base.width, base.height)
     center = size // 2
     canvas = np.zeros((size, size, 3), dtype=np.uint8)
     x0, y0 = center - ax, center - ay  # where the grid's (0, 0) falls on the canvas
@@ -171,17 +171,14 @@ class MiniGridEgocentricObs(gym.ObservationWrapper):
     ``MlpPolicy`` sees the integer codes directly.
 
     :param env: a MiniGrid env
-    :param outer_ring: the canvas of side ``2 * max(W, H) - 1``, with its always empty outer ring, which models saved
-        before it was left out read (``HhP.load`` wraps raw envs so for them)
     """
 
-    def __init__(self, env: gym.Env, outer_ring: bool = False) -> None:
+    def __init__(self, env: gym.Env) -> None:
         super().__init__(env)
-        self.outer_ring = bool(outer_ring)
         base = find_minigrid(env)
         if base is None:
             raise ValueError(f"MiniGridEgocentricObs needs a MiniGrid env, got {env}")
-        size = egocentric_size(base.width, base.height, self.outer_ring)
+        size = egocentric_size(base.width, base.height)
         self.observation_space = spaces.Box(0, MAX_ENCODING, (size, size, 3), np.uint8)
         if _reads_no_minigrid_obs(env, base):
             # MiniGrid's own observation (the 7x7 view, built cell by cell) is discarded here: when no wrapper in
@@ -189,7 +186,7 @@ class MiniGridEgocentricObs(gym.ObservationWrapper):
             base.gen_obs = _BlankObs(base)
 
     def observation(self, observation: Any) -> np.ndarray:
-        return egocentric_grid(self.env.unwrapped, self.outer_ring)
+        return egocentric_grid(self.env.unwrapped)
 
 
 #: wrappers that pass observations through without reading them

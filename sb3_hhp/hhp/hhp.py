@@ -8,8 +8,6 @@ confident choices (lines 24-27), discover sub-goals (line 29) and update the cur
 35); then ``train`` runs N_opt meta-controller updates (lines 30-34) whose reward is eq. 3.
 """
 
-import hashlib
-import inspect
 import io
 import pathlib
 import pickle
@@ -37,19 +35,22 @@ from sb3_hhp.curiosity.rnd import RND
 from sb3_hhp.discovery.csd import SubgoalDiscovery
 from sb3_hhp.dqn.buffers import buffer_state, load_buffer_state
 from sb3_hhp.dqn.dqn import DoubleDQN
-from sb3_hhp.goals import SUCCESS_KEY, GoalSpace, MiniGridGoalSpace, make_goal_space, wrap_env
+from sb3_hhp.goals import GoalSpace, MiniGridGoalSpace, make_goal_space, wrap_env
+from sb3_hhp.hhp.arguments import check_grouped, grouped
+from sb3_hhp.hhp.acting import HierarchicalActing
+from sb3_hhp.hhp.bonus import PreferenceBonus
 from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, GridCNN, MlpPolicy, MultiInputPolicy
 from sb3_hhp.hhp.episodes import BetweenEpisodes
-from sb3_hhp.hierarchy.learners import PAPER_SUBPOLICY_KWARGS, SharedHeadsDQN, StackedDQN
+from sb3_hhp.hierarchy.learners import SharedHeadsDQN, StackedDQN
 from sb3_hhp.hierarchy.options import (
-    EpisodeTrace, OptionRunner, Subgoal, SubgoalSet, SubgoalVecEnv, check_vec_env, env_view, option_terminal,
+    EpisodeTrace, OptionRunner, PrimitiveVecEnv, Subgoal, SubgoalSet, SubgoalVecEnv, check_vec_env, env_view,
 )
 from sb3_hhp.hierarchy.subpolicies import PerGoalLearners, SubpolicySet
 from sb3_hhp.oracles.base import Oracle
 from sb3_hhp.oracles.registry import make_oracle
 from sb3_hhp.preferences.predictor import PreferencePredictor
 from sb3_hhp.preferences.query import QuerySelector
-from sb3_hhp.preferences.rewards import PreferenceReturnNormalizer, meta_reward
+from sb3_hhp.preferences.rewards import PreferenceReturnNormalizer
 from sb3_hhp.preferences.store import PreferenceStore
 from sb3_hhp.subgoal_table import SubgoalTable
 
@@ -57,15 +58,6 @@ SelfHhP = TypeVar("SelfHhP", bound="HhP")
 
 #: the learners of discrete-action sub-goals (``subgoal_learner``)
 SUBGOAL_LEARNERS = {"heads": SharedHeadsDQN, "stacked": StackedDQN}
-#: the choices of an episode ``predict`` remembers per env with ``break_cycles`` (a loop of choices is a few long)
-CHOICE_MEMORY = 64
-
-
-def observation_digests(batch: np.ndarray) -> list[bytes]:
-    """A 16-byte digest (blake2b) of each observation of a batch: how the masks' cache and the deterministic policy's
-    memory of visited states tell observations apart without keeping them."""
-    return [hashlib.blake2b(obs.tobytes(), digest_size=16).digest() for obs in batch]
-
 #: the zip member of a saved model that holds the components beyond the meta-controller
 COMPONENTS_FILE = "hhp_components.pt"  # not .pth: SB3 loads every .pth member as weights only
 REPLAY_FORMAT = "sb3_hhp.HhP.replay"  # the file of HhP.save_replay_buffer
@@ -83,123 +75,6 @@ def _continuous_actions(env: Union[GymEnv, str]) -> bool:
     return isinstance(space, spaces.Box)
 
 
-#: ``query_kwargs``: the query selection (:class:`~sb3_hhp.preferences.query.QuerySelector`): the paper's t_qry
-#: (``threshold``, fixed mode), the pacing ``mode`` ("adaptive" or "fixed"), and the ``horizon`` in primitive steps
-#: over which the adaptive mode paces the budget (None: the ``total_timesteps`` of each ``learn`` call), and how the
-#: second sub-goal of a question is chosen (``second``: "meta", the paper's, or "unasked")
-QUERY_DEFAULTS: dict[str, Any] = dict(threshold=0.26, mode="adaptive", horizon=None, quantile_window=2_000,
-                                      second="meta")
-#: ``predictor_kwargs``: the preference predictor's (:class:`~sb3_hhp.preferences.predictor.PreferencePredictor`);
-#: MC-dropout masks and dropout probability of eq. 4, its head and spread (design decisions: the predictor head)
-PREDICTOR_DEFAULTS: dict[str, Any] = dict(hidden_dim=256, dropout=0.1, n_masks=500, head="linear", spread="std")
-#: every key ``predictor_kwargs`` may hold (HhP sets ``buffer_size``, ``device`` and ``seed`` unless given)
-PREDICTOR_KEYS = frozenset(inspect.signature(PreferencePredictor.__init__).parameters) - {"self", "observation_space"}
-#: ``discovery_kwargs``: CSD's (:class:`~sb3_hhp.discovery.csd.SubgoalDiscovery`): lowest percentile of novelty
-#: progress, visits a key needs, the similarity gate b_similarity, whether the state just before a success is a
-#: candidate too, and which states the percentile ranks
-DISCOVERY_DEFAULTS: dict[str, Any] = dict(percentile=5.0, min_visits=2, similarity_threshold=0.5, before_success=False,
-                                          percentile_of="visited")
-#: ``subgoal_learner_kwargs``: how the sub-goal learners learn, beside their SB3 arguments (``subpolicy_kwargs``):
-#: own steps over which a subpolicy's epsilon decays, and the run's steps since it was added over which it decays too
-#: (None: own steps only); whether every transition also trains the other sub-goals' learners, relabelled with their
-#: rewards; whether they take their gradient steps on every primitive step, not only while they act (None: True for
-#: discrete actions, False for DDPG sub-goals, a model each); most learners updated in one round
-#: (``subgoal_learner="stacked"``; None: all); the learning rounds of one step of the envs in one call; the cells
-#: around the agent the learners read (None: the whole observation); the one-hot encoding of each channel the
-#: learners read (None: its integer codes); the side of the blocks of the coarse copy of the whole observation they
-#: also read (None: none); the range their TD targets are clipped to (None: unclipped)
-SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(exploration_steps=5_000, exploration_run_steps=None,
-                                                share_experience=True, train_shared=None,
-                                                max_updates=8, grouped_rounds=False, view=None, carry_relabel=0.0,
-                                                one_hot=None, overview=None, target_range=None)
-#: each ``*_kwargs`` argument grouped over defaults: its defaults and the keys it accepts (None: the defaults' keys)
-GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
-    "query_kwargs": (QUERY_DEFAULTS, None),
-    "predictor_kwargs": (PREDICTOR_DEFAULTS, PREDICTOR_KEYS),
-    "discovery_kwargs": (DISCOVERY_DEFAULTS, None),
-    "subgoal_learner_kwargs": (SUBGOAL_LEARNER_DEFAULTS, None),
-}
-#: constructor arguments of earlier versions and where they went: old name -> (``*_kwargs`` argument, key)
-MOVED_ARGUMENTS: dict[str, tuple[str, str]] = {
-    "t_qry": ("query_kwargs", "threshold"),
-    "query_mode": ("query_kwargs", "mode"),
-    "query_horizon": ("query_kwargs", "horizon"),
-    "n_masks": ("predictor_kwargs", "n_masks"),
-    "dropout": ("predictor_kwargs", "dropout"),
-    "predictor_head": ("predictor_kwargs", "head"),
-    "confidence_spread": ("predictor_kwargs", "spread"),
-    "csd_percentile": ("discovery_kwargs", "percentile"),
-    "csd_min_visits": ("discovery_kwargs", "min_visits"),
-    "b_similarity": ("discovery_kwargs", "similarity_threshold"),
-    "subpolicy_exploration_steps": ("subgoal_learner_kwargs", "exploration_steps"),
-    "share_experience": ("subgoal_learner_kwargs", "share_experience"),
-    "train_shared": ("subgoal_learner_kwargs", "train_shared"),
-    "max_subgoal_updates": ("subgoal_learner_kwargs", "max_updates"),
-}
-
-
-def moved_argument_message(name: str) -> str:
-    """What to write instead of ``name``, an argument of an earlier version that a ``*_kwargs`` dict now holds."""
-    group, key = MOVED_ARGUMENTS[name]
-    return f"{name!r} is now a key of {group}: write {group}=dict({key}=...) (in a YAML entry, {group}: {{{key}: ...}})"
-
-
-def group_moved_arguments(arguments: dict[str, Any]) -> dict[str, Any]:
-    """``arguments`` with every moved argument of an earlier version put under its ``*_kwargs`` key (for models
-    and optimisation trials written before the arguments were grouped); the other arguments as they are."""
-    grouped = {name: value for name, value in arguments.items() if name not in MOVED_ARGUMENTS}
-    for name, value in arguments.items():
-        if name in MOVED_ARGUMENTS:
-            group, key = MOVED_ARGUMENTS[name]
-            grouped[group] = {**(grouped.get(group) or {}), key: value}
-    return grouped
-
-
-def _refuse_moved(moved: dict[str, Any]) -> None:
-    for name in moved:
-        if name in MOVED_ARGUMENTS:
-            raise TypeError(f"HhP got an argument of an earlier version: {moved_argument_message(name)}")
-    if moved:
-        raise TypeError(f"HhP got unexpected keyword arguments {sorted(moved)}")
-
-
-def _grouped(name: str, given: Optional[dict[str, Any]]) -> dict[str, Any]:
-    """The ``*_kwargs`` argument ``name``: its defaults updated with ``given``; a key it does not accept is refused."""
-    defaults, keys = GROUPED_ARGUMENTS[name]
-    if given is not None and not isinstance(given, dict):
-        raise ValueError(f"{name} must be a dict, got {type(given).__name__}")
-    known = keys if keys is not None else frozenset(defaults)
-    unknown = sorted(set(given or {}) - known)
-    if unknown:
-        raise ValueError(f"{name} has no key {unknown[0]!r}; its keys are {', '.join(sorted(known))}")
-    return {**defaults, **(given or {})}
-
-
-def _check_grouped(query: dict[str, Any], predictor: dict[str, Any], learner: dict[str, Any]) -> None:
-    """The grouped values a later component would only refuse once the model is set up."""
-    if not (isinstance(query["threshold"], (int, float, np.number)) and query["threshold"] >= 0):
-        raise ValueError(f"query_kwargs['threshold'] (t_qry) must be >= 0, got {query['threshold']!r}")
-    if query["horizon"] is not None and query["horizon"] < 1:
-        raise ValueError(f"query_kwargs['horizon'] must be >= 1 primitive steps (or None), got {query['horizon']}")
-    if not 0.0 <= predictor["dropout"] < 1.0:
-        raise ValueError(f"predictor_kwargs['dropout'] must be in [0, 1), got {predictor['dropout']}")
-    if not 0.0 <= learner.get("carry_relabel", 0.0) <= 1.0:
-        raise ValueError(f"subgoal_learner_kwargs['carry_relabel'] must be in [0, 1], got {learner['carry_relabel']!r}")
-    if learner["train_shared"] and not learner["share_experience"]:
-        raise ValueError("subgoal_learner_kwargs: train_shared=True trains sub-goals on shared experience: it needs "
-                         "share_experience=True")
-
-
-#: the paper's settings (section 5.1) over the class defaults, which are those measured to learn MiniGrid here:
-#: the paper's sub-goal learner, an uncentred preference bonus, the meta-controller on observations, sub-goals
-#: learning only while they act, 200 questions
-PAPER_KWARGS: dict[str, Any] = dict(
-    query_budget=200, center_bonus=False, meta_input="observation", predictor_input="observation",
-    subgoal_learner="stacked", subpolicy_kwargs=PAPER_SUBPOLICY_KWARGS, max_subgoal_steps=50,
-    subgoal_learner_kwargs=dict(train_shared=False, max_updates=None),
-)
-
-
 def _holds(file: Any, data: bytes, prefix: bool = False) -> bool:
     """Whether a model file (a path or a binary file object) begins with, or contains, ``data``."""
     try:
@@ -215,11 +90,10 @@ def _holds(file: Any, data: bytes, prefix: bool = False) -> bool:
     return content.startswith(data) if prefix else data in content
 
 
-def _vec_env(env: Union[GymEnv, str, None], outer_ring: bool = False) -> Optional[VecEnv]:
+def _vec_env(env: Union[GymEnv, str, None]) -> Optional[VecEnv]:
     """The primitive envs under ``env`` as a VecEnv: an env id or a gym env becomes a DummyVecEnv of one env (with
     the observation its goal space reads, and a Monitor for SB3's episode statistics); a VecEnv is used as it is
-    (each env already wrapped, e.g. ``make_vec_env(ENV, n_envs=8, wrapper_class=sb3_hhp.goals.wrap_env)``).
-    ``outer_ring``: a MiniGrid env's canvas with its outer ring (models saved before it was left out)."""
+    (each env already wrapped, e.g. ``make_vec_env(ENV, n_envs=8, wrapper_class=sb3_hhp.goals.wrap_env)``)."""
     if env is None:
         return None
     if isinstance(env, str):
@@ -233,122 +107,87 @@ def _vec_env(env: Union[GymEnv, str, None], outer_ring: bool = False) -> Optiona
         return check_vec_env(env)
     if not isinstance(env, gym.Env):
         raise ValueError(f"HhP needs a gymnasium env, an env id or a VecEnv, got {type(env).__name__}")
-    wrapped = wrap_env(env, outer_ring=outer_ring)
+    wrapped = wrap_env(env)
     return DummyVecEnv([lambda: wrapped if is_wrapped(wrapped, Monitor) else Monitor(wrapped)])
 
 
-class HhP(BetweenEpisodes, DoubleDQN):
-    """Hierarchical learning from human preferences and curiosity.
+class _Grouped:
+    """An attribute of the model that is one key of one of its ``*_kwargs`` dicts (read and set through it)."""
+
+    def __init__(self, group: str, key: str) -> None:
+        self.group, self.key = group, key
+
+    def __get__(self, model: Any, owner: Any = None) -> Any:
+        return self if model is None else getattr(model, self.group)[self.key]
+
+    def __set__(self, model: Any, value: Any) -> None:
+        getattr(model, self.group)[self.key] = value
+
+
+class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
+    """Hierarchical learning from human preferences and curiosity (Algorithm 1).
+
+    The meta-controller (this class, a Double DQN with prioritized replay) chooses a sub-goal for each env; the
+    sub-goal learners run it until ``terminal(s, g)`` (:class:`~sb3_hhp.hierarchy.options.OptionRunner`); between
+    episodes the oracle is asked about the least confident choices, CSD adds sub-goals and RND is updated
+    (:class:`~sb3_hhp.hhp.episodes.BetweenEpisodes`); then N_opt meta-controller updates whose reward is eq. 3.
+    ``total_timesteps`` counts primitive env steps, :meth:`predict` returns primitive actions, and
+    :meth:`get_env` is the VecEnv of primitive envs, as SB3 users expect. The same semi-MDP is offered to any SB3
+    algorithm by :class:`~sb3_hhp.hierarchy.HierarchicalEnv`.
 
     :param policy: the meta-controller's policy ("MlpPolicy", "CnnPolicy", "MultiInputPolicy" or a class)
-    :param env: the task (a gym env, an env id, or a DummyVecEnv of one env); MiniGrid envs are wrapped
-        with :class:`~sb3_hhp.goals.MiniGridEgocentricObs` when needed
-    :param oracle: who answers preference queries: an :class:`~sb3_hhp.oracles.Oracle` or a name of
-        :data:`~sb3_hhp.oracles.ORACLE_NAMES`
-    :param query_budget: total number of questions over training (>= 0)
+    :param env: the task: a gym env or an env id (wrapped with :func:`~sb3_hhp.goals.wrap_env` and a Monitor), or a
+        VecEnv of any number of envs, each already wrapped
+    :param oracle: who answers preference queries: an :class:`~sb3_hhp.oracles.Oracle`, a name of
+        :data:`~sb3_hhp.oracles.ORACLE_NAMES` (built with ``query_kwargs["oracle_kwargs"]``), or None
+    :param query_budget: total number of questions over training (>= 0); 0 with no preference file gives the paper's
+        "Cur" ablation (no labels, so the meta-controller's reward is R_e alone)
     :param beta: weight of the extrinsic return in eq. 3, in [0, 1]
     :param alpha: weight of the intrinsic reward in eq. 6 (>= 0)
-    :param use_preferences: False gives the paper's "Cur" ablation (no queries, reward = R_e)
-    :param use_curiosity: False gives the "Pref" ablation (no RND, alpha = 0)
-    :param discovery: "csd", "random" (ablation) or "none" (only the sub-goals handed in)
-    :param subgoals: sub-goals handed in by the user: observations of the env (seed or replace discovery)
+    :param use_curiosity: False gives the paper's "Pref" ablation (no RND at all: no intrinsic reward, and CSD ranks
+        no novelty progress)
     :param goal_space: "auto", a registered name or a :class:`~sb3_hhp.goals.GoalSpace`
-    :param max_subgoal_steps: primitive steps after which a sub-goal gives up (design decisions: max_subgoal_steps)
-    :param subgoal_capacity: initial size of the meta-controller's head (it doubles when full)
-    :param subgoal_learner: discrete actions: "stacked" (default: a network of its own per sub-goal, all updated in
-        one call; measured to learn DoorKey-8x8 faster; cost and memory grow with the number of sub-goals) or "heads"
-        (one network, a shared trunk and one head per sub-goal, one relabelled batch for all; the cost of a step
-        barely grows with the number of sub-goals); see the README's Design
-    :param center_bonus: centre the preference bonus over the sub-goals of each state: True or "mean" subtracts
-        their mean, "max" the best choosable one's score, so that no choice is paid (see the README's Design)
-    :param exact_bonus: the meta-controller's Q-value of a choice is its preference bonus (eq. 3's
-        ``(1 - beta) * b / sigma``, computed by the predictor when the choice is made or replayed) plus what its
-        network learns, the value of what follows; False (default): the network learns both, as in the paper. The
-        reward and its fixed point are the same; the network no longer lags behind a bonus it is told (see the
-        README's Design)
-    :param success_bonus: the preference bonus of choosing the task's own goal ("task solved",
-        :data:`~sb3_hhp.goals.SUCCESS_KEY`): "predicted" (default: the predictor's, as any sub-goal's) or "best" (the
-        state's best choosable score: the extrinsic reward alone judges that choice, and no question compares it;
-        see the design decisions)
-    :param mask_subgoals: the meta-controller chooses, in each state, only among the sub-goals that the goal space
-        calls choosable there (:meth:`~sb3_hhp.goals.GoalSpace.choosable`: not already achieved; on MiniGrid,
-        also a milestone); in acting, exploring and the TD target alike (see the README's Design)
-    :param break_cycles: how :meth:`predict` acts where a greedy policy on a deterministic env that comes back to a
-        state goes round the same cycle: the meta-controller back in an observation it chose in before in the episode
-        takes its best choosable sub-goal not chosen there yet (nor one that just gave up), and (discrete actions) a
-        sub-goal learner whose walk comes back to an observation takes its best action not yet taken there; the
-        stochastic policy (``deterministic=False``) is that policy with epsilon-random choices and actions, as SB3's
-        DQN is epsilon-greedy (see the README's Design). False: plain greedy, and plain epsilon-greedy. Training is
-        unaffected (it explores)
-    :param predictor_input: what the preference predictor reads: "observation", "features" (the goal space's
-        compact description of a state, :meth:`~sb3_hhp.goals.GoalSpace.features`) or "auto" (features when the
-        goal space has them; see the README's Design)
-    :param meta_input: what the meta-controller reads: "observation" (default), "features" (the goal space's
-        description, through :class:`~sb3_hhp.hhp.policies.GoalSpaceFeatures`) or "auto" (features when the goal
-        space has them and ``policy_kwargs`` names no features extractor; see the README's Design)
-    :param preference_db: path of the SQLite preference store (None: in memory)
-    :param record_images: render the state at every sub-goal choice, for the questions' state images (default: when
-        a person answers, ``oracle="web"`` or ``"terminal"``, unless the goal space draws a question's state from its
-        privileged facts, as MiniGrid's does: ``GoalSpace.draws_from_facts``; a render costs ~20 ms on Fetch)
-    :param n_opt: meta-controller gradient steps after each episode (N_opt = 4)
-    :param query_kwargs: when to ask (keys and defaults: :data:`QUERY_DEFAULTS`): ``threshold`` (the paper's
-        t_qry, fixed mode), ``mode`` ("adaptive" paces the budget over training, design decisions: adaptive
-        threshold; "fixed" asks above ``threshold``), ``horizon`` (primitive steps over which the adaptive mode
-        paces the budget; default: the ``total_timesteps`` of each ``learn`` call; set it when training in several
-        ``learn`` calls), ``second`` ("meta": the meta-controller's second choice, the paper's; "unasked": its best
-        choosable sub-goal that no question has named yet, where there is one)
-    :param predictor_kwargs: arguments of :class:`~sb3_hhp.preferences.predictor.PreferencePredictor` over
-        :data:`PREDICTOR_DEFAULTS`: ``n_masks`` (MC-dropout masks of eq. 4), ``dropout`` (its p), ``head`` and
-        ``spread`` (design decisions: the predictor head), ``hidden_dim``, ``learning_rate``, ...
-    :param discovery_kwargs: CSD's, over :data:`DISCOVERY_DEFAULTS`: ``similarity_threshold`` (the paper's
-        b_similarity, in [0, 1]), ``percentile`` (lowest percentile of novelty progress), ``min_visits`` (visits a
-        state's sub-goal key needs before it may become a sub-goal), ``before_success`` (the state visited just
-        before a success is a candidate too, like the success itself), ``percentile_of`` ("visited": the percentile
-        ranks every state of the episode; "new": only those whose key is not a sub-goal's yet and has the visits)
-    :param subgoal_learner_kwargs: how the sub-goal learners learn, over :data:`SUBGOAL_LEARNER_DEFAULTS`:
-        ``exploration_steps`` (own steps over which a subpolicy's epsilon decays), ``exploration_run_steps``
-        (``subgoal_learner="stacked"`` or ``"heads"`` with ``train_shared``: the primitive steps since a sub-goal was
-        added over which its epsilon decays too, the lower rate acting, so a sub-goal seldom chosen stops acting at
-        random; None: own steps only), ``share_experience`` (every
-        transition also trains, off-policy, the other sub-goals' learners, relabelled with their rewards),
-        ``train_shared`` (every sub-goal takes its gradient steps on every primitive step, at its own ``train_freq``,
-        not only while it acts; the heads learner always does; None: True for discrete actions, False for DDPG
-        sub-goals, a model each, K times the updates), ``max_updates`` (``subgoal_learner="stacked"``: most learners
-        updated in one round, the sub-goals the envs pursue now first, then those that waited longest, so that the
-        cost of a step stops growing once more sub-goals have been found; None: every sub-goal at each of its
-        updates; see the README's Design), ``grouped_rounds`` (the learning rounds due at one step of the envs in
-        one call), ``view`` (discrete actions: the learners read only the central ``view`` x ``view`` cells of an
-        ``(H, W, C)`` observation, on MiniGrid's egocentric canvas the cells around the agent; ``"inner"``: all but the
-        outermost ring, which on MiniGrid's canvas only ever shows the border wall; None: all of it), ``carry_relabel``
-        (``subgoal_learner="stacked"``: the share of a sub-goal's batch that, where the sub-goal carries an object,
-        becomes steps taken with empty hands as they would have gone carrying it; the goal space's
-        :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`, MiniGrid's: turns and steps; 0: none), ``one_hot``
-        (discrete actions: the learners read each channel ``c`` of ``(H, W, C)`` uint8 codes as one-hot indicators of
-        the codes ``one_hot[c]``, a count n for codes 0 to n - 1 or a list of codes, 0 or ``[]`` leaving it out;
-        MiniGrid's canvas: ``[11, 6, 3]``, every object, colour and state; None: the codes as numbers), ``overview``
-        (discrete actions, MlpPolicy: the learners also read a coarse copy of the whole observation, blocks of
-        ``overview`` x ``overview`` cells each as its most salient cell, the highest code of the first channel: on
-        MiniGrid's canvas, in which direction a goal square, key or door beyond the ``view`` lies; odd, >= 3; None: none),
-        ``target_range`` (discrete actions: ``(low, high)``, the learners' TD targets clipped to it, as HER clips its
-        targets; with ``alpha`` 0 eq. 5 puts every return in ``[-1, 1]``; None: unclipped)
-    :param subpolicy_kwargs: arguments of the sub-goal learners, in SB3 DQN's names (discrete actions: over
-        :data:`~sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWARGS`; ``PAPER_SUBPOLICY_KWARGS`` is the paper's learner;
-        ``buffer_size`` is the shared replay's, in primitive transitions) or of each sub-goal's SB3 DDPG (continuous)
+    :param max_subgoal_steps: primitive steps after which a sub-goal gives up (``terminal(s, g)``, design decisions)
+    :param preference_db: path of the SQLite preference store (None: in memory); the labeling page reads it
+    :param query_kwargs: who is asked and when, over :data:`~sb3_hhp.hhp.arguments.QUERY_DEFAULTS`
+    :param predictor_kwargs: the preference predictor's, over :data:`~sb3_hhp.hhp.arguments.PREDICTOR_DEFAULTS`
+        (any argument of :class:`~sb3_hhp.preferences.predictor.PreferencePredictor`, and ``input``)
+    :param discovery_kwargs: CSD's, over :data:`~sb3_hhp.hhp.arguments.DISCOVERY_DEFAULTS` (``strategy``, the
+        ``subgoals`` handed in, the similarity gate b_similarity, ...)
+    :param subgoal_learner_kwargs: how the sub-goal learners learn, over
+        :data:`~sb3_hhp.hhp.arguments.SUBGOAL_LEARNER_DEFAULTS`
+    :param subpolicy_kwargs: the sub-goal learners' SB3 arguments (discrete actions: DQN's names, over
+        :data:`~sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWARGS`; ``buffer_size`` is the shared replay's, in
+        primitive transitions; continuous actions: each sub-goal's SB3 DDPG)
     :param rnd_kwargs: arguments of :class:`~sb3_hhp.curiosity.rnd.RND` (memory_size M, refresh_interval T, ...)
-    :param oracle_kwargs: arguments of the oracle built from a name
-
-    Other parameters are those of :class:`~sb3_hhp.dqn.DoubleDQN` (the meta-controller); the meta
-    replay buffer R_H holds ``buffer_size`` sub-goal choices, and ``target_update_interval`` counts them. An argument
-    of an earlier version that a ``*_kwargs`` dict now holds (``t_qry``, ``n_masks``, ``b_similarity``, ...) is
-    refused with the key to use (:data:`MOVED_ARGUMENTS`); models saved with them load as they were.
+    :param meta_kwargs: the meta-controller beyond SB3's DQN arguments, over
+        :data:`~sb3_hhp.hhp.arguments.META_DEFAULTS` (``n_opt``, the target network's interval in choices, the
+        preference bonus's centring, masks, cycle breaking, ...)
+    :param learning_rate: the meta-controller's (SB3's DQN); so are ``batch_size``, ``gamma``, the exploration
+        schedule (over primitive steps), ``policy_kwargs``, ``tensorboard_log``, ``verbose``, ``seed`` and ``device``
+    :param buffer_size: the meta replay R_H, in sub-goal choices
+    :param learning_starts: primitive steps of random sub-goal choices before the meta-controller chooses
+    :param batch_size: the meta-controller's batch
+    :param gamma: the meta-controller's discount, per choice
+    :param exploration_fraction: the fraction of training over which its epsilon falls
+    :param exploration_final_eps: its epsilon at the end of that fraction
+    :param policy_kwargs: the meta-controller's policy's arguments
+    :param tensorboard_log: SB3's
+    :param verbose: SB3's
+    :param seed: SB3's
+    :param device: SB3's
+    :param _init_setup_model: SB3's
     """
 
-    #: states whose key and reach (:meth:`action_mask`) are kept; the cache is emptied when a batch would overfill it
-    present_cache_size = 100_000
-    #: models saved before ``success_bonus`` existed load with its default
-    success_bonus = "predicted"
-    #: a MiniGrid model saved before the canvas's empty outer ring was left out reads the canvas with it (set by load)
-    minigrid_outer_ring = False
+    center_bonus = _Grouped("meta_kwargs", "center_bonus")
+    exact_bonus = _Grouped("meta_kwargs", "exact_bonus")
+    success_bonus = _Grouped("meta_kwargs", "success_bonus")
+    mask_subgoals = _Grouped("meta_kwargs", "mask_subgoals")
+    break_cycles = _Grouped("meta_kwargs", "break_cycles")
+    meta_input = _Grouped("meta_kwargs", "input")
+    predictor_input = _Grouped("predictor_kwargs", "input")
+    discovery_strategy = _Grouped("discovery_kwargs", "strategy")
+    subgoal_learner = _Grouped("subgoal_learner_kwargs", "kind")
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
@@ -364,109 +203,59 @@ class HhP(BetweenEpisodes, DoubleDQN):
         query_budget: int = 100,
         beta: float = 0.7,
         alpha: float = 0.5,
-        use_preferences: bool = True,
         use_curiosity: bool = True,
-        discovery: str = "csd",
-        subgoals: Optional[list[np.ndarray]] = None,
         goal_space: Union[str, GoalSpace] = "auto",
         max_subgoal_steps: int = 50,
-        subgoal_capacity: int = 16,
-        subgoal_learner: str = "stacked",
-        center_bonus: Union[bool, str] = "max",
-        exact_bonus: bool = False,
-        success_bonus: str = "predicted",
-        mask_subgoals: bool = True,
-        break_cycles: bool = True,
-        predictor_input: str = "auto",
-        meta_input: str = "auto",
         preference_db: Optional[str] = None,
-        record_images: Optional[bool] = None,
-        n_opt: int = 4,
         query_kwargs: Optional[dict[str, Any]] = None,
         predictor_kwargs: Optional[dict[str, Any]] = None,
         discovery_kwargs: Optional[dict[str, Any]] = None,
         subgoal_learner_kwargs: Optional[dict[str, Any]] = None,
         subpolicy_kwargs: Optional[dict[str, Any]] = None,
         rnd_kwargs: Optional[dict[str, Any]] = None,
-        oracle_kwargs: Optional[dict[str, Any]] = None,
+        meta_kwargs: Optional[dict[str, Any]] = None,
         learning_rate: Union[float, Schedule] = 1e-3,
         buffer_size: int = 500_000,
         learning_starts: int = 1_000,
         batch_size: int = 128,
-        tau: float = 1.0,
         gamma: float = 0.99,
-        target_update_interval: int = 500,
         exploration_fraction: float = 0.2,
-        exploration_initial_eps: float = 1.0,
         exploration_final_eps: float = 0.05,
-        max_grad_norm: float = 10,
-        stats_window_size: int = 100,
-        tensorboard_log: Optional[str] = None,
         policy_kwargs: Optional[dict[str, Any]] = None,
+        tensorboard_log: Optional[str] = None,
         verbose: int = 0,
         seed: Optional[int] = None,
         device: Union[th.device, str] = "auto",
         _init_setup_model: bool = True,
-        **moved: Any,
     ) -> None:
-        _refuse_moved(moved)
         if not 0.0 <= beta <= 1.0:
             raise ValueError(f"beta must be in [0, 1], got {beta}")
         if alpha < 0:
             raise ValueError(f"alpha must be >= 0, got {alpha}")
         if isinstance(query_budget, bool) or not isinstance(query_budget, (int, np.integer)) or query_budget < 0:
             raise ValueError(f"query_budget must be an integer >= 0, got {query_budget!r}")
-        if discovery not in ("csd", "random", "none"):
-            raise ValueError(f"discovery must be 'csd', 'random' or 'none', got {discovery!r}")
-        if discovery == "none" and not subgoals:
-            raise ValueError("discovery='none' needs sub-goals handed in with subgoals=[obs, ...]")
-        if n_opt < 1:
-            raise ValueError(f"n_opt must be >= 1, got {n_opt}")
-        if subgoal_learner not in SUBGOAL_LEARNERS:
-            raise ValueError(f"subgoal_learner must be one of {sorted(SUBGOAL_LEARNERS)}, got {subgoal_learner!r}")
-        if predictor_input not in ("auto", "features", "observation"):
-            raise ValueError(f"predictor_input must be 'auto', 'features' or 'observation', got {predictor_input!r}")
-        if meta_input not in ("auto", "features", "observation"):
-            raise ValueError(f"meta_input must be 'auto', 'features' or 'observation', got {meta_input!r}")
-        if center_bonus not in (True, False, "mean", "max"):
-            raise ValueError(f"center_bonus must be True / 'mean', 'max' or False, got {center_bonus!r}")
-        if not isinstance(exact_bonus, bool):
-            raise ValueError(f"exact_bonus must be True or False, got {exact_bonus!r}")
-        if success_bonus not in ("predicted", "best"):
-            raise ValueError(f"success_bonus must be 'predicted' or 'best', got {success_bonus!r}")
-        self.query_kwargs = _grouped("query_kwargs", query_kwargs)
-        self.predictor_kwargs = _grouped("predictor_kwargs", predictor_kwargs)
-        self.discovery_kwargs = _grouped("discovery_kwargs", discovery_kwargs)
-        self.subgoal_learner_kwargs = _grouped("subgoal_learner_kwargs", subgoal_learner_kwargs)
-        _check_grouped(self.query_kwargs, self.predictor_kwargs, self.subgoal_learner_kwargs)
-        learner = self.subgoal_learner_kwargs
+        self.query_kwargs = grouped("query_kwargs", query_kwargs)
+        self.predictor_kwargs = grouped("predictor_kwargs", predictor_kwargs)
+        self.discovery_kwargs = grouped("discovery_kwargs", discovery_kwargs)
+        self.subgoal_learner_kwargs = grouped("subgoal_learner_kwargs", subgoal_learner_kwargs)
+        self.meta_kwargs = grouped("meta_kwargs", meta_kwargs)
+        check_grouped(self.query_kwargs, self.predictor_kwargs, self.discovery_kwargs, self.subgoal_learner_kwargs,
+                      self.meta_kwargs)
+        learner, meta = self.subgoal_learner_kwargs, self.meta_kwargs
         if learner["train_shared"] is None:  # discrete sub-goal learners train on every step; one DDPG model each does not
             learner["train_shared"] = learner["share_experience"] and (env is None or not _continuous_actions(env))
+        subgoals = self.discovery_kwargs.pop("subgoals")
+        self.initial_subgoals = [np.asarray(goal) for goal in subgoals] if subgoals else []
         self.oracle_spec = oracle
         self.query_budget = int(query_budget)
         self.beta = beta
         self.alpha = alpha
-        self.use_preferences = use_preferences
         self.use_curiosity = use_curiosity
-        self.discovery_strategy = discovery
-        self.initial_subgoals = [np.asarray(goal) for goal in subgoals] if subgoals else []
         self.goal_space_spec = goal_space
         self.max_subgoal_steps = max_subgoal_steps
-        self.subgoal_capacity = subgoal_capacity
-        self.predictor_input = predictor_input
-        self.meta_input = meta_input
         self.rnd_kwargs = dict(rnd_kwargs or {})
         self.subpolicy_kwargs = dict(subpolicy_kwargs or {})
         self.preference_db = preference_db
-        self.oracle_kwargs = dict(oracle_kwargs or {})
-        self.n_opt = n_opt
-        self.center_bonus = center_bonus
-        self.exact_bonus = exact_bonus
-        self.success_bonus = success_bonus
-        self.mask_subgoals = mask_subgoals
-        self.break_cycles = bool(break_cycles)
-        self.subgoal_learner = subgoal_learner
-        self.record_images = record_images
         self.subpolicy_policy = policy if isinstance(policy, str) else "MlpPolicy"
 
         venv = _vec_env(env)
@@ -484,21 +273,21 @@ class HhP(BetweenEpisodes, DoubleDQN):
                 policy_kwargs = self._cnn_policy_kwargs(policy_kwargs)
         super().__init__(
             policy,
-            SubgoalVecEnv(self.options, subgoal_capacity) if self.options is not None else None,  # type: ignore[arg-type]
+            SubgoalVecEnv(self.options, meta["capacity"]) if self.options is not None else None,  # type: ignore[arg-type]
             learning_rate=learning_rate,
             buffer_size=buffer_size,
             learning_starts=learning_starts,
             batch_size=batch_size,
-            tau=tau,
+            tau=meta["tau"],
             gamma=gamma,
             train_freq=(1, "episode"),
-            gradient_steps=n_opt,
-            target_update_interval=target_update_interval,
+            gradient_steps=meta["n_opt"],
+            target_update_interval=meta["target_update_interval"],
             exploration_fraction=exploration_fraction,
-            exploration_initial_eps=exploration_initial_eps,
+            exploration_initial_eps=meta["exploration_initial_eps"],
             exploration_final_eps=exploration_final_eps,
-            max_grad_norm=max_grad_norm,
-            stats_window_size=stats_window_size,
+            max_grad_norm=meta["max_grad_norm"],
+            stats_window_size=meta["stats_window_size"],
             tensorboard_log=tensorboard_log,
             policy_kwargs=policy_kwargs,
             verbose=verbose,
@@ -553,19 +342,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             f"{space}: use HhP('MlpPolicy', env)"
         )
 
-    def _group_saved_arguments(self) -> None:
-        """A model saved before the arguments were grouped holds them as attributes (SB3's load sets every saved
-        attribute): put them under their ``*_kwargs`` dicts, over the defaults, as they were trained with."""
-        old = {name: self.__dict__.pop(name) for name in list(MOVED_ARGUMENTS) if name in self.__dict__}
-        if not old:
-            return
-        old.setdefault("max_subgoal_updates", None)  # saved before that argument existed: every learner updated
-        grouped = group_moved_arguments(old)
-        for group, (defaults, _) in GROUPED_ARGUMENTS.items():
-            setattr(self, group, {**defaults, **(getattr(self, group, None) or {}), **grouped.get(group, {})})
-
     def _setup_model(self) -> None:
-        self._group_saved_arguments()
         # the replay R_H holds sub-goal choices, which end at different times in different envs: one stream
         n_envs, self.n_envs = self.n_envs, 1
         try:
@@ -576,14 +353,15 @@ class HhP(BetweenEpisodes, DoubleDQN):
         obs_space = self.primitive_observation_space
         self.rnd = RND(obs_space, device=device, seed=self.seed, **self.rnd_kwargs) if self.use_curiosity else None
         predictor_kwargs = dict(buffer_size=max(1, self.query_budget), device=device, seed=self.seed)
-        predictor_kwargs.update(self.predictor_kwargs)
+        predictor_kwargs.update({key: value for key, value in self.predictor_kwargs.items() if key != "input"})
         self._predictor_reads_features = self._reads_features("predictor_input", self.predictor_input)
         predictor_space = (
             spaces.Box(-np.inf, np.inf, (self.goal_space.features_dim(obs_space),), np.float32)
             if self._predictor_reads_features else obs_space
         )
         self.predictor = PreferencePredictor(predictor_space, **predictor_kwargs)
-        query = {key: value for key, value in self.query_kwargs.items() if key != "horizon"}
+        query = {key: value for key, value in self.query_kwargs.items()
+                 if key not in ("horizon", "record_images", "oracle_kwargs")}
         self.query_selector = QuerySelector(self.query_budget, **query)
         self.return_normalizer = PreferenceReturnNormalizer(gamma=0.99, rollout_length=64)
         alpha = self.alpha if self.use_curiosity else 0.0
@@ -592,7 +370,8 @@ class HhP(BetweenEpisodes, DoubleDQN):
             self.subpolicies = SUBGOAL_LEARNERS[self.subgoal_learner](
                 obs_space, self.primitive_action_space, self.goal_space.achieved, policy=self.subpolicy_policy,
                 subpolicy_kwargs=self.subpolicy_kwargs, alpha=alpha, n_envs=self.n_envs, device=device, seed=self.seed,
-                action_mask=self.goal_space.action_mask, counterfactual=self.goal_space.carried_counterfactual, **learner,
+                action_mask=self.goal_space.action_mask, counterfactual=self.goal_space.carried_counterfactual,
+                **{key: value for key, value in learner.items() if key != "kind"},
             )
         else:
             # the options of the learners of discrete actions, each with the value that leaves it unset (models saved
@@ -612,12 +391,13 @@ class HhP(BetweenEpisodes, DoubleDQN):
             )
         self.discovery = SubgoalDiscovery(
             self.goal_space, strategy="random" if self.discovery_strategy == "random" else "csd", seed=self.seed,
-            **self.discovery_kwargs,
+            **{key: value for key, value in self.discovery_kwargs.items() if key != "strategy"},
         )
         self.store = PreferenceStore(self.preference_db or ":memory:", create=True)
         self.store.set_query_budget(self.query_budget)  # shown on the labeling page as "asked / budget"
         self.subgoal_table = SubgoalTable(self.store)  # the labeling page's gallery, in the store's file
         self.oracle = self._make_oracle()
+        self.record_images = self.query_kwargs["record_images"]
         if self.record_images is None:  # states shown to people, unless a question's state is drawn from its facts
             self.record_images = (self.oracle_spec in ("web", "terminal")
                                   and not getattr(self.goal_space, "draws_from_facts", False))
@@ -644,15 +424,13 @@ class HhP(BetweenEpisodes, DoubleDQN):
         self._sync_action_space()
 
     def _make_oracle(self) -> Optional[Oracle]:
-        if not self.use_preferences:
-            return None
         if isinstance(self.oracle_spec, Oracle):
             return self.oracle_spec
         if self.oracle_spec is None:
             return None
         return make_oracle(
             self.oracle_spec, self.goal_space, self.primitive_observation_space, store=self.store, seed=self.seed,
-            **self.oracle_kwargs,
+            **self.query_kwargs["oracle_kwargs"],
         )
 
     # ------------------------------------------------------------------ the sub-goal set
@@ -684,56 +462,6 @@ class HhP(BetweenEpisodes, DoubleDQN):
         self.valid_actions = mask if n_goals > 0 else None
         self._mask_cache = {}
 
-    def action_mask(self, observations: Union[np.ndarray, dict[str, np.ndarray]]) -> Optional[np.ndarray]:
-        """The sub-goals the meta-controller may choose in each state: the existing ones, and with
-        ``mask_subgoals`` only those the goal space calls choosable from the state's key (a state where
-        none is keeps every existing sub-goal)."""
-        valid = self._valid_actions
-        if valid is None or not self.mask_subgoals or isinstance(observations, dict):
-            return valid
-        batch = self._env_layout(np.asarray(observations)).astype(self.primitive_observation_space.dtype, copy=False)
-        goal_keys = [goal.key for goal in self.subgoals]
-        rows = np.empty((len(batch), len(valid)), dtype=bool)
-        digests = observation_digests(batch)  # 16 bytes, not 6.6 KB (47x47x3)
-        unseen = {digest: i for i, digest in enumerate(digests) if digest not in self._present_cache}
-        if unseen:  # key and present of a state, reused whenever the same observation recurs; new ones in one batch
-            if len(self._present_cache) + len(unseen) > self.present_cache_size:
-                self._present_cache.clear()  # and every state of the batch is new again
-                unseen = {digest: i for i, digest in enumerate(digests)}
-            index = list(unseen.values())
-            for digest, i, present in zip(unseen, index, self.goal_space.present_batch(batch[index])):
-                self._present_cache[digest] = (self.goal_space.key(batch[i]), present)
-        for i, digest in enumerate(digests):
-            key, present = self._present_cache[digest]
-            row = self._mask_cache.get((key, present))
-            if row is None:
-                row = valid.copy()
-                row[: len(goal_keys)] = [self.goal_space.choosable(key, goal_key, present) for goal_key in goal_keys]
-                row = row if row.any() else valid
-                self._mask_cache[(key, present)] = row
-            rows[i] = row
-        return rows
-
-    def predictor_inputs(self, observations: np.ndarray) -> np.ndarray:
-        """What the predictor reads for a batch of observations: the goal space's features, or the
-        observations themselves (``predictor_input``)."""
-        observations = self._env_layout(np.asarray(observations))
-        return self.goal_space.features(observations) if self._predictor_reads_features else observations
-
-    def query_inputs(self, query: Any) -> np.ndarray:
-        """What the predictor reads of a question: its state and its two sub-goals, stacked."""
-        return self.predictor_inputs(np.stack([query.state, query.goal1_obs, query.goal2_obs]))
-
-    def add_preference(self, query: Any, label: Any) -> bool:
-        """Feed one answered query to the predictor's buffer R (False: the label teaches nothing, e.g.
-        "incomparable")."""
-        state, goal1, goal2 = self.query_inputs(query)
-        return self.predictor.add(state, goal1, goal2, label)
-
-    @property
-    def goal_obs(self) -> np.ndarray:
-        return np.stack([goal.obs for goal in self.subgoals])
-
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
         """N_opt meta-controller updates for each episode that just ended (Algorithm 1 lines 30-34), once the meta
         buffer holds a batch."""
@@ -741,93 +469,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             return
         super().train(gradient_steps * max(1, self._rollout_episodes), batch_size)
 
-    # ------------------------------------------------------------------ rewards (eq. 3)
-    def _rewards(self, replay_data: Any) -> th.Tensor:
-        """r^e = beta * R_e + (1 - beta) * b / sigma(R_p) (eq. 3, Algorithm 1 lines 32-33), with the bonus
-        b = p_hat(s, g) recomputed by the current predictor for the sampled choices."""
-        extrinsic = replay_data.rewards
-        if not self.use_preferences or len(self.predictor) == 0:
-            return extrinsic
-        goals = replay_data.actions.long().flatten().cpu().numpy()
-        states = replay_data.observations.cpu().numpy().astype(self.primitive_observation_space.dtype)
-        bonus = self._replay_bonus(np.asarray(replay_data.indices) // self.replay_buffer.n_envs, states, goals)
-        bonus_t = th.as_tensor(bonus, dtype=extrinsic.dtype, device=extrinsic.device).reshape(-1, 1)
-        return meta_reward(extrinsic, bonus_t, sigma=self.return_normalizer.sigma, beta=self.beta)
-
-    def _replay_bonus(self, rows: np.ndarray, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
-        """:meth:`preference_bonus` of sampled rows of R_H, scored once per row while the predictor and the sub-goal
-        set (and the centring) stay the same (a row's bonus depends on nothing else): late in a run, when the budget is spent, the
-        meta-controller's updates stop re-scoring the same choices."""
-        key = (self.predictor.version, len(self.subgoals), self.center_bonus, self.success_bonus, self.mask_subgoals, id(self.replay_buffer),
-               self.replay_buffer.buffer_size)
-        if getattr(self, "_bonus_key", None) != key:
-            self._bonus_key = key
-            self._bonus_cache = np.zeros(self.replay_buffer.buffer_size, dtype=np.float32)
-            self._bonus_valid = np.zeros(self.replay_buffer.buffer_size, dtype=bool)
-        stale = ~self._bonus_valid[rows]
-        if stale.any():
-            self._bonus_cache[rows[stale]] = self.preference_bonus(states[stale], goals[stale])
-            self._bonus_valid[rows[stale]] = True
-        return self._bonus_cache[rows]
-
-    def preference_bonus(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
-        """The preference bonus b = p_hat(s, g) (Algorithm 1 line 12), centred over the sub-goals when
-        ``center_bonus``: b(s, g) - mean_g' p_hat(s, g') (True or "mean"), or b(s, g) - max_g' p_hat(s, g') over
-        the sub-goals choosable in s and g ("max": never positive). Bradley-Terry (eq. 2) fixes scores only up to a
-        per-state constant, so the uncentred level is arbitrary shaping that can pay for dawdling. With
-        ``success_bonus="best"`` the task's own goal scores as the best of the other sub-goals choosable in s."""
-        if not self.center_bonus and self.success_bonus != "best":
-            return self.predictor.score(self.predictor_inputs(states), self.predictor_inputs(self.goal_obs)[goals])
-        return self.bonus_matrix(states)[np.arange(len(states)), goals]
-
-    def bonus_matrix(self, states: np.ndarray) -> np.ndarray:
-        """:meth:`preference_bonus` of every sub-goal in each state, ``(N, n_sub-goals)``; under "max" centring a
-        sub-goal not choosable in s and scored above every choosable one gets 0, as it would if chosen."""
-        success = self.success_goal if self.success_bonus == "best" else None
-        mask = self.action_mask(states) if self.center_bonus == "max" or success is not None else None
-        goal_obs, inputs = self.predictor_inputs(self.goal_obs), self.predictor_inputs(states)
-        n_goals, n_states = len(goal_obs), len(inputs)
-        scores = self.predictor.score_matrix(inputs, goal_obs)  # (n_states, n_goals)
-        choosable = (np.ones_like(scores, dtype=bool) if mask is None
-                     else np.broadcast_to(mask, (n_states, mask.shape[-1]))[:, :n_goals])
-        if success is not None:  # the best other choosable score (the success's own where it is the only choice)
-            others = choosable & (np.arange(n_goals) != success)
-            best_other = np.where(others, scores, -np.inf).max(axis=1)
-            scores[:, success] = np.where(np.isfinite(best_other), best_other, scores[:, success])
-        if not self.center_bonus:
-            return scores
-        if self.center_bonus == "max":
-            best = np.where(choosable, scores, -np.inf).max(axis=1, keepdims=True)
-            return np.minimum(scores - np.where(np.isfinite(best), best, scores), 0.0)
-        return scores - scores.mean(axis=1, keepdims=True)
-
-    def _q_offset(self, observations: th.Tensor) -> Optional[th.Tensor]:
-        """With ``exact_bonus``: eq. 3's bonus term ``(1 - beta) * b(s, g) / sigma`` of every sub-goal, the part of the
-        meta-controller's Q-values that the predictor computes (0 for the head's unused rows); else None."""
-        if not self.exact_bonus or not self.use_preferences or len(self.predictor) == 0 or not self.subgoals:
-            return None
-        states = observations.cpu().numpy().astype(self.primitive_observation_space.dtype)
-        bonus = np.zeros((len(states), int(self.action_space.n)), dtype=np.float32)
-        bonus[:, : len(self.subgoals)] = self.bonus_matrix(states)
-        bonus_t = th.as_tensor(bonus, device=observations.device)
-        return meta_reward(th.zeros_like(bonus_t), bonus_t, sigma=self.return_normalizer.sigma, beta=self.beta)
-
-    @property
-    def success_goal(self) -> Optional[int]:
-        """The index of the task's own goal among the sub-goals (:data:`~sb3_hhp.goals.SUCCESS_KEY`), None before
-        it is found."""
-        keys = self.subgoal_set.keys
-        return keys.index(SUCCESS_KEY) if SUCCESS_KEY in keys else None
-
-    # ------------------------------------------------------------------ acting
-    def choose_subgoals(self, obs: np.ndarray, learning_starts: int = 0, deterministic: bool = False) -> np.ndarray:
-        """The meta-controller's sub-goal for each state of ``obs`` (env layout), in one batched forward: at random
-        among the choosable sub-goals before ``learning_starts``, else epsilon-greedy (Algorithm 1 line 11)."""
-        if self.num_timesteps < learning_starts and not deterministic:
-            return self._random_actions(len(obs), self.action_mask(obs))
-        actions, _ = DoubleDQN.predict(self, obs, deterministic=deterministic)
-        return np.asarray(actions, dtype=np.int64).reshape(len(obs))
-
+    # ------------------------------------------------------------------ rollouts
     def collect_rollouts(
         self,
         env: VecEnv,
@@ -890,7 +532,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             replay_buffer.add(obs, next_obs, np.array([[option.goal]]),
                               np.array([option.extrinsic_return], dtype=np.float32), np.array([done]), [info])
             self._on_step()
-        if self.use_preferences and len(self.predictor) > 0:
+        if len(self.predictor) > 0:
             self._unscored.extend(ended)
 
     def _score_ended_choices(self) -> None:
@@ -912,122 +554,6 @@ class HhP(BetweenEpisodes, DoubleDQN):
             polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
         self.exploration_rate = self.exploration_schedule(self._current_progress_remaining)
         self.logger.record("rollout/exploration_rate", self.exploration_rate)
-
-    def _env_layout(self, obs: np.ndarray) -> np.ndarray:
-        """Observations in the env's layout: images that come channel first (an env wrapped in SB3's
-        VecTransposeImage, as RL Zoo's evaluation envs are) are turned back to the env's channel-last frames."""
-        shape = self.primitive_observation_space.shape
-        if len(shape) == 3 and obs.shape[-3:] != shape and obs.shape[-3:] == (shape[2], shape[0], shape[1]):
-            return np.moveaxis(obs, -3, -1)
-        return obs
-
-    def predict(
-        self,
-        observation: Union[np.ndarray, dict[str, np.ndarray]],
-        state: Optional[tuple[np.ndarray, ...]] = None,
-        episode_start: Optional[np.ndarray] = None,
-        deterministic: bool = False,
-    ) -> tuple[np.ndarray, Optional[tuple[np.ndarray, ...]]]:
-        """Primitive actions. ``state`` = (current sub-goal per env, primitive steps spent on it, then what
-        ``break_cycles`` remembers: digests of the observations the sub-goal's walk was in and the actions taken there,
-        digests of the observations of the episode's last choices and the sub-goals chosen there, the number of
-        choices), so SB3's ``evaluate_policy`` works unchanged: a new sub-goal is chosen at an episode start, when the
-        current one is reached, or when it gives up after ``max_subgoal_steps`` (a deterministic meta-controller then
-        takes its best *other* sub-goal). With ``break_cycles``, the policy back in an observation takes the best
-        choice, and the best action, it has not taken there yet, or (``deterministic=False``) with probability epsilon
-        a random one."""
-        obs = self._env_layout(np.asarray(observation))
-        vectorized = obs.shape != self.primitive_observation_space.shape
-        batch = obs if vectorized else obs[None]
-        n_envs = batch.shape[0]
-        if state is None:
-            goals, steps = np.full(n_envs, -1, dtype=np.int64), np.zeros(n_envs, dtype=np.int64)
-        else:
-            goals, steps = np.array(state[0], dtype=np.int64), np.array(state[1], dtype=np.int64)
-        walk = int(self.max_subgoal_steps)
-        shapes = [(n_envs, walk)] * 2 + [(n_envs, CHOICE_MEMORY)] * 2 + [(n_envs,)]
-        if state is not None and len(state) == 7 and all(np.shape(part) == shape for part, shape in zip(state[2:], shapes)):
-            memory = [np.array(part, dtype=np.int64) for part in state[2:]]
-        else:
-            memory = [np.zeros(shape, dtype=np.int64) for shape in shapes]
-        visited, taken, chosen_at, chosen_goals, n_chosen = memory
-        if episode_start is not None:
-            goals[np.asarray(episode_start, dtype=bool)] = -1
-            n_chosen[np.asarray(episode_start, dtype=bool)] = 0
-        subgoals = self.subgoals
-        if not subgoals:
-            actions = np.stack([self.primitive_action_space.sample() for _ in range(n_envs)])
-            return (actions if vectorized else actions[0]), (goals, steps, *memory)
-        remember = self.break_cycles
-        here = np.array([int.from_bytes(digest[:8], "little", signed=True) for digest in observation_digests(batch)],
-                        dtype=np.int64) if remember else None
-        renew = []
-        for i in range(n_envs):
-            goal = goals[i]
-            if goal < 0:
-                renew.append(i)
-                continue
-            achieved, gave_up = option_terminal(self.goal_space, self.goal_space.key(batch[i]), subgoals[goal].key,
-                                                int(steps[i]), self.max_subgoal_steps)
-            if gave_up or (achieved and steps[i] > 0):
-                renew.append(i)
-        if renew:
-            renew = np.asarray(renew)
-            greedy = deterministic or remember  # the rules below, then (stochastic) epsilon-random choices
-            chosen, _ = DoubleDQN.predict(self, batch[renew], deterministic=greedy)
-            if greedy and len(subgoals) > 1:
-                # not chosen again at once: a sub-goal that just gave up (a greedy meta-controller would repeat the same
-                # failing choice until the episode ends), and with break_cycles any sub-goal chosen before in this
-                # observation in this episode (a greedy policy back in a state goes round the same loop of choices)
-                excluded = np.zeros((len(renew), len(subgoals)), dtype=bool)
-                failed = (goals[renew] >= 0) & (steps[renew] >= self.max_subgoal_steps)
-                excluded[np.flatnonzero(failed), goals[renew][failed]] = True
-                if remember:
-                    known = np.minimum(n_chosen[renew], CHOICE_MEMORY)
-                    same = (chosen_at[renew] == here[renew, None]) & (np.arange(CHOICE_MEMORY) < known[:, None])
-                    rows, columns = np.nonzero(same)
-                    excluded[rows, chosen_goals[renew][rows, columns]] = True
-                chosen = self._other_choices(batch[renew], chosen, excluded)
-            if not deterministic and remember:  # each env's choice random with probability epsilon, as DQN explores
-                explore = np.random.rand(len(renew)) < self.exploration_rate
-                if explore.any():  # among the choosable sub-goals, as choose_subgoals explores (None: the valid ones)
-                    chosen[explore] = self._random_actions(int(explore.sum()), self.action_mask(batch[renew][explore]))
-            goals[renew] = chosen
-            steps[renew] = 0
-            visited[renew], taken[renew] = 0, -1  # a new walk
-            if remember:
-                slot = n_chosen[renew] % CHOICE_MEMORY
-                chosen_at[renew, slot], chosen_goals[renew, slot] = here[renew], chosen
-                n_chosen[renew] += 1
-        if remember and isinstance(self.primitive_action_space, spaces.Discrete):
-            # a walk back in an observation passes over the actions it took there before
-            at = np.minimum(steps, walk - 1)  # steps < max_subgoal_steps here: a walk that long gave up above
-            rows, columns = np.nonzero((visited == here[:, None]) & (np.arange(walk) < at[:, None]))
-            avoid = np.zeros((n_envs, int(self.primitive_action_space.n)), dtype=bool)
-            avoid[rows, taken[rows, columns]] = True
-            actions = self.subpolicies.act(goals, batch, deterministic=deterministic, avoid=avoid)
-            visited[np.arange(n_envs), at], taken[np.arange(n_envs), at] = here, actions
-        else:
-            actions = self.subpolicies.act(goals, batch, deterministic=deterministic)
-        steps += 1
-        return (actions if vectorized else actions[0]), (goals, steps, *memory)
-
-    def _other_choices(self, batch: np.ndarray, chosen: np.ndarray, excluded: np.ndarray) -> np.ndarray:
-        """The greedy meta-controller's choices ``chosen`` in the states ``batch``, where a row of ``excluded`` rules
-        sub-goals out, replaced by its best choosable sub-goal not ruled out (kept where every choosable one is)."""
-        rows = np.flatnonzero(excluded.any(axis=1))
-        if not len(rows):
-            return chosen
-        with th.no_grad():
-            q_values = self._q_values(self.policy.obs_to_tensor(batch[rows])[0]).cpu().numpy()[:, : excluded.shape[1]]
-        mask = self.action_mask(batch[rows])
-        if mask is not None:  # one row per state, or one row for all (mask_subgoals=False)
-            q_values[~np.broadcast_to(mask, (len(rows), mask.shape[-1]))[:, : excluded.shape[1]]] = -np.inf
-        q_values[excluded[rows]] = -np.inf
-        chosen = np.array(chosen, copy=True)
-        left = np.isfinite(q_values).any(axis=1)
-        chosen[rows[left]] = q_values[left].argmax(axis=1)
-        return chosen
 
     # ------------------------------------------------------------------ learning
     def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
@@ -1052,10 +578,21 @@ class HhP(BetweenEpisodes, DoubleDQN):
         """Train for ``total_timesteps`` primitive env steps (Algorithm 1)."""
         if self.options is None:
             raise ValueError("This model has no env: pass one with HhP.load(path, env=env) or model.set_env(env)")
+        if self.options.interrupted:  # the envs were stepped through get_env(): fresh episodes, not stale observations
+            self._last_obs = None
         horizon = total_timesteps + (0 if reset_num_timesteps else self.num_timesteps)
         self.query_selector.set_total_timesteps(int(self.query_kwargs["horizon"] or horizon))
         self.resume_preferences()
         return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
+
+    def get_env(self) -> Optional[VecEnv]:
+        """The primitive envs, as a VecEnv whose actions are what :meth:`predict` returns (SB3's README loop and
+        ``evaluate_policy(model, model.get_env())`` work); None without an env."""
+        if self.options is None:
+            return None
+        if getattr(self, "_primitive_env", None) is None or self._primitive_env.runner is not self.options:
+            self._primitive_env = PrimitiveVecEnv(self.options)
+        return self._primitive_env
 
     def resume_preferences(self) -> int:
         """Feed the predictor every answered label of the store it has not seen yet, and count every
@@ -1128,7 +665,7 @@ class HhP(BetweenEpisodes, DoubleDQN):
             "options", "subgoal_set", "_last_trace", "rnd", "predictor", "query_selector", "return_normalizer", "subpolicies", "discovery",
             "store", "subgoal_table", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
             "last_confidences", "consumed_query_ids", "initial_subgoals", "_asked_signatures", "_asked_goal_keys", "_mask_cache", "_present_cache",
-            "_bonus_key", "_bonus_cache", "_bonus_valid", "_unscored",
+            "_bonus_key", "_bonus_cache", "_bonus_valid", "_unscored", "_primitive_env",
             *(["learn"] if "learn" in vars(self) else []),  # a bound learn (sb3_hhp.train --resume) is no data of the model
         ]
 
@@ -1149,8 +686,6 @@ class HhP(BetweenEpisodes, DoubleDQN):
             "consumed_query_ids": sorted(self.consumed_query_ids),
             "recent_choices": list(self.recent_choices),
             "oracle": self.oracle_spec if isinstance(self.oracle_spec, str) or self.oracle_spec is None else "none",
-            # the MiniGrid canvas the networks read (absent from models saved before its outer ring was left out)
-            "minigrid_outer_ring": self.minigrid_outer_ring,
         }
 
     def load_components_state(self, state: dict[str, Any]) -> None:
@@ -1211,8 +746,6 @@ class HhP(BetweenEpisodes, DoubleDQN):
                     ) from error
                 # the oracle: the caller's (HhP.load(path, oracle="web")), else the one the model was saved with
                 kwargs["oracle_spec"] = kwargs.pop("oracle") if "oracle" in kwargs else components.get("oracle", "scripted")
-                if "predictor_input" not in kwargs and '"predictor_input"' not in archive.read("data").decode("utf-8", "replace"):
-                    kwargs["predictor_input"] = "observation"  # saved before the predictor could read features
         except zipfile.BadZipFile as error:
             if _holds(file, b"PK\x03\x04", prefix=True):
                 raise ValueError(f"{path} is truncated or damaged: it begins as a saved model (a zip archive) but its end "
@@ -1220,10 +753,6 @@ class HhP(BetweenEpisodes, DoubleDQN):
             raise ValueError(f"{path} is not a saved HhP model (not a zip archive): {error}") from error
         model = super().load(file, env=None, device=device, custom_objects=custom_objects,
                              print_system_info=print_system_info, force_reset=force_reset, **kwargs)
-        # a MiniGrid model saved before the canvas's outer ring was left out reads the canvas with it: raw envs given
-        # to it are wrapped so (set_env)
-        model.minigrid_outer_ring = (isinstance(getattr(model, "goal_space", None), MiniGridGoalSpace)
-                                     and components.get("minigrid_outer_ring", True))
         model.load_components_state(components)
         if env is not None:
             model.set_env(env, force_reset=force_reset)
@@ -1266,15 +795,10 @@ class HhP(BetweenEpisodes, DoubleDQN):
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """Attach (new) envs: an env, an env id or a VecEnv of any number of envs, whose sub-goals are the model's."""
-        outer_ring = self.minigrid_outer_ring
-        venv = _vec_env(env, outer_ring=outer_ring)
+        venv = _vec_env(env)
         assert venv is not None
         if venv.observation_space != self.primitive_observation_space:
-            hint = ""
-            if isinstance(self.goal_space, MiniGridGoalSpace):
-                hint = ("; this model reads MiniGrid's canvas with its outer ring (it was saved before that ring was left "
-                        "out): wrap its envs with sb3_hhp.goals.wrap_env(env, outer_ring=True), or give a raw env"
-                        if outer_ring else "; wrap MiniGrid envs with sb3_hhp.goals.wrap_env")
+            hint = "; wrap MiniGrid envs with sb3_hhp.goals.wrap_env" if isinstance(self.goal_space, MiniGridGoalSpace) else ""
             raise ValueError(
                 f"The env's observation space {venv.observation_space} differs from the model's "
                 f"{self.primitive_observation_space}{hint}"

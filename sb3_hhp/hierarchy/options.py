@@ -164,16 +164,24 @@ class OptionRunner:
     :param rnd: the global curiosity model (None: no curiosity, the "Pref" ablation)
     :param max_subgoal_steps: primitive steps after which a sub-goal gives up
     :param record_images: render s_t at each choice (people and the gallery need it)
+    :param learn: store every transition in the learners' replay, curiosity, visits and the episodes' traces (False:
+        the learners only act, frozen, as in :class:`~sb3_hhp.hierarchy.HierarchicalEnv`)
+    :param deterministic: the learners act greedily (else epsilon-greedy, or with their action noise)
     """
 
     def __init__(self, venv: VecEnv, goal_space: GoalSpace, subgoals: SubgoalSet, learners: Any, rnd: Optional[RND],
-                 max_subgoal_steps: int = 50, record_images: bool = False) -> None:
+                 max_subgoal_steps: int = 50, record_images: bool = False, learn: bool = True,
+                 deterministic: bool = False) -> None:
         if max_subgoal_steps < 1:
             raise ValueError(f"max_subgoal_steps must be >= 1, got {max_subgoal_steps}")
         self.venv = check_vec_env(venv)
         self.goal_space, self.subgoals, self.learners, self.rnd = goal_space, subgoals, learners, rnd
         self.max_subgoal_steps = max_subgoal_steps
         self.record_images = record_images
+        self.learn, self.deterministic = learn, deterministic
+        #: set when the envs were stepped or reset by someone else (:class:`PrimitiveVecEnv`): the next ``learn``
+        #: starts from fresh episodes rather than from observations that are no longer the envs'
+        self.interrupted = False
         #: record the privileged facts of s_t at each choice (questions need them; None is stored while not)
         self.record_privileged = True
         self.num_envs = venv.num_envs
@@ -196,6 +204,7 @@ class OptionRunner:
 
     def reset(self) -> np.ndarray:
         self.obs = self.venv.reset()
+        self.interrupted = False
         self.goals[:] = -1
         self.steps[:] = 0
         self.option_returns[:] = 0.0
@@ -229,12 +238,13 @@ class OptionRunner:
         assert self.obs is not None, "reset() must be called before step()"
         obs, acting, n = self.obs, self.goals.copy(), self.num_envs
         pursuing = acting >= 0
+        deterministic = self.deterministic
         if pursuing.all():
-            actions = self.learners.act(acting, obs)  # line 15, every env in one call
+            actions = self.learners.act(acting, obs, deterministic=deterministic)  # line 15, every env in one call
         else:
             actions = np.stack([self.action_space.sample() for _ in range(n)])  # no sub-goal yet: line 5
             if pursuing.any():
-                actions[pursuing] = self.learners.act(acting[pursuing], obs[pursuing])
+                actions[pursuing] = self.learners.act(acting[pursuing], obs[pursuing], deterministic=deterministic)
         next_obs, rewards, dones, infos = self.venv.step(actions)  # line 16
         final_obs = next_obs
         truncated = np.array([bool(info.get("TimeLimit.truncated", False)) for info in infos]) & dones
@@ -254,23 +264,14 @@ class OptionRunner:
         for i in np.flatnonzero(pursuing):
             achieved[i], gave_up[i] = option_terminal(goal_space, keys[i], goal_keys[acting[i]], int(self.steps[i]),
                                                       self.max_subgoal_steps)
-        intrinsic = (self.rnd.intrinsic_reward(final_obs) if self.rnd is not None else np.zeros(n)).astype(np.float32)  # eq. 7
-        # lines 17-20: stored once; each sub-goal's eq. 5 / 6 reward is computed when its batch is drawn
-        self.learners.observe(obs, np.asarray(actions), final_obs, keys, terminated, truncated, gave_up, acting, intrinsic)
-        visits = self.subgoals.visits
-        for i in range(n):
-            visits[keys[i]] += 1
-            trace = self.traces[i]
-            trace.low_obs.append(final_obs[i])
-            trace.low_keys.append(keys[i])
-            trace.intrinsic.append(float(intrinsic[i]))
+        if self.learn:
+            self._observe(obs, np.asarray(actions), final_obs, keys, terminated, truncated, gave_up, acting)
         self.num_steps += n
-        if self.rnd is not None:
-            self.rnd.on_steps(n)
         options, episodes = [], []
         for i in np.flatnonzero(pursuing & (achieved | gave_up | dones)):  # line 22
             goal = int(acting[i])
-            self.learners.record_outcome(goal, bool(achieved[i]))
+            if self.learn:
+                self.learners.record_outcome(goal, bool(achieved[i]))
             info = dict(infos[i], primitive_steps=int(self.steps[i]), subgoal=goal, subgoal_reached=bool(achieved[i]))
             options.append(OptionEnd(int(i), self.choice_obs[i], goal, float(self.option_returns[i]), final_obs[i],
                                      bool(terminated[i]), bool(truncated[i]), bool(achieved[i]), int(self.steps[i]), info))
@@ -286,6 +287,25 @@ class OptionRunner:
         return options, episodes
 
 
+    def _observe(self, obs: np.ndarray, actions: np.ndarray, final_obs: np.ndarray, keys: list, terminated: np.ndarray,
+                 truncated: np.ndarray, gave_up: np.ndarray, acting: np.ndarray) -> None:
+        """What a step leaves to learn from: its curiosity reward (eq. 7), the transition in the learners' replay
+        (lines 17-20: stored once; each sub-goal's eq. 5 / 6 reward is computed when its batch is drawn), the keys'
+        visits (CSD) and the episodes' traces."""
+        n = len(keys)
+        intrinsic = (self.rnd.intrinsic_reward(final_obs) if self.rnd is not None else np.zeros(n)).astype(np.float32)
+        self.learners.observe(obs, actions, final_obs, keys, terminated, truncated, gave_up, acting, intrinsic)
+        visits = self.subgoals.visits
+        for i in range(n):
+            visits[keys[i]] += 1
+            trace = self.traces[i]
+            trace.low_obs.append(final_obs[i])
+            trace.low_keys.append(keys[i])
+            trace.intrinsic.append(float(intrinsic[i]))
+        if self.rnd is not None:
+            self.rnd.on_steps(n)
+
+
 def is_success(info: dict, terminated: bool, extrinsic_return: float) -> bool:
     """Whether an episode that just ended solved the task: the env's own ``is_success`` where it reports one
     (the Fetch tasks, which never terminate), else a positive return at a terminal state (MiniGrid)."""
@@ -295,9 +315,9 @@ def is_success(info: dict, terminated: bool, extrinsic_return: float) -> bool:
 
 
 class SubgoalVecEnv(VecEnvWrapper):
-    """What SB3 sees of HhP's envs: their observations, and one action per env that is a sub-goal
-    (``Discrete(capacity)``). HhP steps the primitive envs itself through its :class:`OptionRunner`; this view
-    resets them and carries the spaces."""
+    """What the meta-controller's SB3 base class holds of HhP's envs: their observations, and one action per env that
+    is a sub-goal (``Discrete(capacity)``). HhP steps the primitive envs itself through its :class:`OptionRunner`;
+    this view resets them and carries the spaces. Users get :class:`PrimitiveVecEnv` (``model.get_env()``)."""
 
     def __init__(self, runner: OptionRunner, capacity: int) -> None:
         super().__init__(runner.venv, observation_space=runner.venv.observation_space,
@@ -312,7 +332,30 @@ class SubgoalVecEnv(VecEnvWrapper):
         return [None if seed is None else seed + i for i in range(self.num_envs)]
 
     def step_async(self, actions: np.ndarray) -> None:
-        raise RuntimeError("HhP's envs are stepped by its option runner (model.options), not through env.step")
+        raise RuntimeError("HhP's sub-goal choices are run by its option runner (model.options); step the primitive "
+                           "envs of model.get_env() with the actions of model.predict, or use HierarchicalEnv")
 
     def step_wait(self):  # pragma: no cover - step_async refuses first
-        raise RuntimeError("HhP's envs are stepped by its option runner (model.options), not through env.step")
+        raise RuntimeError("HhP's sub-goal choices are run by its option runner (model.options)")
+
+
+class PrimitiveVecEnv(VecEnvWrapper):
+    """The model's primitive envs as SB3 users step them (``model.get_env()``): actions are primitive actions, as
+    :meth:`~sb3_hhp.HhP.predict` returns them, so SB3's README loop and ``evaluate_policy(model, model.get_env())``
+    work. Stepping or resetting them marks the option runner as interrupted: the next ``learn`` starts from fresh
+    episodes instead of training on observations that are no longer the envs'."""
+
+    def __init__(self, runner: OptionRunner) -> None:
+        super().__init__(runner.venv)
+        self.runner = runner
+
+    def reset(self) -> np.ndarray:
+        self.runner.interrupted = True
+        return self.venv.reset()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self.runner.interrupted = True
+        self.venv.step_async(actions)
+
+    def step_wait(self):
+        return self.venv.step_wait()
