@@ -1,27 +1,38 @@
-"""Report a sweep of ``python -m benchmarks.run``: a Markdown table and one learning-curve plot per env.
+"""The benchmarks' report: one results page from every sweep under ``benchmarks/results/``, and its summary table in
+the README, the algorithm's page and the benchmarks README.
 
-    python benchmarks/report.py benchmarks/results/doorkey8x8/results.csv
-    python benchmarks/report.py            # every benchmarks/results/*/results.csv
+    python benchmarks/report.py            # write docs/results.md, the learning curves and the three marked blocks
+    python benchmarks/report.py --check    # exit 1 if the page or a marked block is not what the results give
+    python benchmarks/report.py benchmarks/results/doorkey8x8     # one sweep, while it runs: its benchmark.md
 
-Next to each ``results.csv`` it writes ``benchmark.md`` (one row per env x variant: mean ± std over seeds of
-the success rate of the deterministic and of the stochastic policy on the fresh evaluation episodes, of the
-labels used and of the wall time) and ``curves_<env>.png`` (success rate at the periodic evaluations against
-env steps: the mean over seeds, a band of ± one std, a line per variant), and prints the table. Runs started but
-without a row yet (still training, or stopped) are listed apart with the steps their periodic evaluations reached,
-and drawn as dashed lines from those evaluations (``curves/<run>.partial.csv``): a sweep of runs that take hours can
-be looked at while it runs, and a stopped run's evaluations are not lost.
-Needs the ``plots`` extra (pandas, matplotlib).
+Each sweep's folder ``benchmarks/results/<name>/`` (written by ``python -m benchmarks.run``) holds ``results.csv``,
+``curves/<run>.csv``, ``runs/<run>.json`` and the JSON files of ``benchmarks/evaluate.py``. The page
+(:data:`PAGE`, ``docs/results.md``) has the summary of where each task stands (:data:`SUMMARY`: HhP and the flat
+baselines, with seeds, steps and labels), then one section per sweep: the command that reproduces it, the commits
+its runs were trained at, one row per env x variant (mean ± std over seeds of the success rate of the deterministic
+and of the stochastic policy on the fresh evaluation episodes, of the labels used and of the wall time) and one
+learning-curve plot per env (``curves_<env>.png`` in the sweep's folder: success rate at the periodic evaluations
+against env steps, mean over seeds, a band of ± one std, a line per variant). The summary table is copied between
+the markers ``<!-- results:begin -->`` / ``<!-- results:end -->`` of ``README.md`` and ``benchmarks/README.md``
+and ``.. results:begin`` / ``.. results:end`` of ``docs/modules/hhp.rst`` (:data:`BLOCKS`), so the three agree.
+
+Given sweep folders (or their ``results.csv``), it writes ``benchmark.md`` and the plots next to each instead, and
+lists runs started but without a row yet (still training, or stopped) with the steps their periodic evaluations
+reached, drawn as dashed lines (``curves/<run>.partial.csv``): a sweep of runs that take hours can be looked at while
+it runs. Needs the ``plots`` extra (pandas, matplotlib).
 """
 
 import argparse
 import json
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 import pandas as pd
+import yaml
 
 try:
     from benchmarks.run import Experiment, _curve_from_evaluations, attempt_evaluations
@@ -345,23 +356,292 @@ def report(csv_path: Path) -> tuple[str, Path, list[Path]]:
     return table, markdown, plots
 
 
+# ---------------------------------------------------------------------- the results page and its summary
+
+#: the repository's root
+ROOT = Path(__file__).resolve().parent.parent
+#: where the sweeps' folders are, relative to the root
+RESULTS = Path("benchmarks/results")
+#: the sweep files, relative to the root
+EXPERIMENTS = Path("benchmarks/experiments")
+#: the results page, relative to the root
+PAGE = Path("docs/results.md")
+#: the files with a marked summary block, relative to the root: path -> markup ("md" or "rst")
+BLOCKS = {Path("README.md"): "md", Path("docs/modules/hhp.rst"): "rst", Path("benchmarks/README.md"): "md"}
+MARKERS = {"md": ("<!-- results:begin -->", "<!-- results:end -->"), "rst": (".. results:begin", ".. results:end")}
+#: the success rate a task's target asks of every seed, deterministic and stochastic
+TARGET = 0.9
+
+
+class Source(NamedTuple):
+    """Where a row of the summary comes from: a sweep's folder (under :data:`RESULTS`) and one of its variants."""
+
+    sweep: str
+    variant: str
+
+
+class Task(NamedTuple):
+    """A row group of the summary: an env, HhP's row (the settings users train it with), the flat baselines' rows;
+    ``hhp`` None: not run yet."""
+
+    env: str
+    hhp: Optional[Source]
+    baselines: tuple[Source, ...] = ()
+    note: str = ""
+    not_run: tuple[str, ...] = ()  # variants (of VARIANT_NAMES) not run on this task yet
+
+
+#: where each task stands: HhP as ``sb3_hhp/hyperparams/hhp.yml`` trains it on that env, and the flat baselines
+SUMMARY = (
+    Task("MiniGrid-DoorKey-8x8-v0", Source("doorkey8x8_entry", "hhp"),
+         (Source("doorkey8x8", "dqn"), Source("doorkey8x8", "ppo"), Source("doorkey8x8", "ppo_rnd"))),
+    Task("MiniGrid-KeyCorridorS4R3-v0", Source("minigrid_tasks", "hhp_one_hot_new_open"),
+         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")), not_run=("dqn",)),
+    Task("MiniGrid-MultiRoom-N12-S10-v0", Source("minigrid_tasks", "hhp_rerun"),
+         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")), not_run=("dqn",)),
+    Task("MiniGrid-DoorKey-16x16-v0", Source("minigrid_tasks", "hhp_overview_target_range"),
+         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")), not_run=("dqn",)),
+    Task("MiniGrid-ObstructedMaze-1Q-v1", Source("minigrid_tasks", "hhp"),
+         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")), not_run=("dqn",)),
+    Task("Fetch (FetchPush, FetchPickAndPlace; the `fetch` entry)", None, note="not run yet"),
+    Task("Atari (Montezuma's Revenge, Pitfall, ...; the `atari` entry)", None, note="not run yet"),
+)
+SUMMARY_HEADER = ("task", "method", "sweep: variant", "steps", "seeds", "success (deterministic)",
+                  "success (stochastic)", "labels", f">= {TARGET} on every seed")
+
+
+def _seeds(seeds: Sequence[int]) -> str:
+    """``0-2``, ``0-2, 5``: the seeds in runs of consecutive ones."""
+    seeds, runs = sorted(set(int(seed) for seed in seeds)), []
+    for seed in seeds:
+        if runs and seed == runs[-1][1] + 1:
+            runs[-1][1] = seed
+        else:
+            runs.append([seed, seed])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+
+
+def _steps(runs: pd.DataFrame) -> str:
+    return " / ".join(f"{value:,}" for value in sorted(int(value) for value in runs["steps"].unique()))
+
+
+def sweep_results(folder: Path) -> pd.DataFrame:
+    """A sweep's rows as its tables show them (:func:`break_cycles_note`'s figures)."""
+    return break_cycles_note(read_results(folder / "results.csv"), folder)[0]
+
+
+def summary_rows(root: Path = ROOT) -> list[list[str]]:
+    """The summary's rows (:data:`SUMMARY`), cells as :data:`SUMMARY_HEADER`, from the sweeps' results files."""
+    cache: dict[str, pd.DataFrame] = {}
+    rows = []
+    for task in SUMMARY:
+        if task.hhp is None:
+            rows.append([task.env, "HhP", "–", "–", "–", task.note, task.note, "–", "–"])
+            continue
+        for index, source in enumerate((task.hhp, *task.baselines)):
+            if source.sweep not in cache:
+                cache[source.sweep] = sweep_results(root / RESULTS / source.sweep)
+            results = cache[source.sweep]
+            runs = results[(results["env"] == task.env) & (results["variant"] == source.variant)]
+            if runs.empty:
+                raise SystemExit(f"{RESULTS / source.sweep / 'results.csv'} has no {task.env} {source.variant} row: "
+                                 "change report.SUMMARY or run that sweep")
+            met = ["yes" if (runs[column].astype(float) >= TARGET).all() else "no"
+                   for column in ("success_det", "success_stoch")]
+            rows.append([
+                task.env if index == 0 else "", VARIANT_NAMES.get(source.variant, "HhP"),
+                f"`{source.sweep}`: `{source.variant}`", _steps(runs), _seeds(runs["seed"]),
+                _mean_std(runs["success_det"]), _mean_std(runs["success_stoch"]),
+                _mean_std(runs["labels_used"], digits=0), " / ".join(met),
+            ])
+        rows += [["", VARIANT_NAMES[variant], "–", "–", "–", "not run yet", "not run yet", "–", "–"]
+                 for variant in task.not_run]
+    return rows
+
+
+SUMMARY_NOTE = (
+    "Mean ± std over the seeds named, each seed's figure the success rate on 100 fresh evaluation episodes (seeds "
+    "seed + 10000, ...), deterministic and stochastic policy; labels: preference questions answered (HhP only); "
+    "steps: primitive env steps of training. HhP: the settings of its env's entry in `sb3_hhp/hyperparams/hhp.yml`, "
+    "scripted oracle. Generated by `python benchmarks/report.py` from `benchmarks/results/`; every sweep, its "
+    "command and its learning curves: `docs/results.md`."
+)
+
+
+def markdown_summary(rows: list[list[str]]) -> str:
+    """The summary as a Markdown pipe table and its note."""
+    lines = ["| " + " | ".join(SUMMARY_HEADER) + " |", "| --- | --- | --- |" + " ---: |" * 5 + " --- |"]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines) + "\n\n" + SUMMARY_NOTE + "\n"
+
+
+def rst_summary(rows: list[list[str]]) -> str:
+    """The summary as an reStructuredText list-table and its note (the same cells)."""
+    lines = [".. list-table::", "   :header-rows: 1", ""]
+    for row in [list(SUMMARY_HEADER), *rows]:
+        cells = [cell.replace("`", "``").replace("````", "") or r"\ " for cell in row]
+        lines.append("   * - " + cells[0])
+        lines += [f"     - {cell}" for cell in cells[1:]]
+    return "\n".join(lines) + "\n\n" + SUMMARY_NOTE.replace("`", "``") + "\n"
+
+
+def sweep_files(root: Path = ROOT) -> dict[str, list[tuple[Path, dict]]]:
+    """The sweep files, by the folder they write into (their ``name``, default their stem)."""
+    found: dict[str, list[tuple[Path, dict]]] = {}
+    for path in sorted((root / EXPERIMENTS).glob("*.yml")):
+        data = yaml.safe_load(path.read_text()) or {}
+        found.setdefault(str(data.get("name") or path.stem), []).append((path.relative_to(root), data))
+    return found
+
+
+def _commits(results: pd.DataFrame, folder: Path) -> str:
+    """The commits the sweep's runs were trained at (their summaries' ``code``), short."""
+    commits, unrecorded = set(), 0
+    for summary in results.get("summary", pd.Series(dtype=object)).dropna():
+        path = folder / str(summary)
+        code = json.loads(path.read_text()).get("code") if path.is_file() else None
+        if not code:
+            unrecorded += 1
+        for part in code or []:
+            commits.add(str(part.get("commit", ""))[:7] + ("+changes" if part.get("changed") else ""))
+    unrecorded += int(results["summary"].isna().sum()) if "summary" in results else len(results)
+    text = ", ".join(f"`{commit}`" for commit in sorted(commits))
+    if unrecorded:
+        text += ("; " if text else "") + (f"{unrecorded} run{'s' if unrecorded > 1 else ''} trained before runs "
+                                           "recorded their commit")
+    return text
+
+
+def sweep_section(folder: Path, root: Path, files: list[tuple[Path, dict]], plot: bool) -> str:
+    """One sweep's section of the page: commands, commits, table, note, plots (written when ``plot``)."""
+    results, cycles_note = break_cycles_note(read_results(folder / "results.csv"), folder)
+    lines = [f"## {folder.name}", ""]
+    if files:
+        lines.append("Reproduce (resumable: a run with a row is skipped), then `python benchmarks/report.py`:")
+        lines.append("")
+        for path, data in files:
+            variants = ", ".join(data.get("variants") or [])
+            lines.append(f"- `python -m benchmarks.run {path.as_posix()} --jobs 2` ({variants})")
+    else:
+        lines.append("No sweep file of `benchmarks/experiments/` writes into this folder.")
+    lines += ["", f"Trained at: {_commits(results, folder)}.", "", markdown_table(results)]
+    episodes = sorted(int(value) for value in results["eval_episodes"].dropna().unique()) if "eval_episodes" in results else []
+    lines.append(
+        f"Mean ± std over seeds. Success: fraction of {' / '.join(map(str, episodes)) or 'the'} fresh evaluation "
+        "episodes (seeds seed + 10000, ...) solved by the deterministic and by the stochastic policy. Labels: "
+        "preference queries answered (HhP only). Wall time: training and evaluation of one run, on the machine and "
+        "under the load it had." + ("\n" + cycles_note.rstrip() if cycles_note else ""))
+    if plot:
+        plot_curves(results, folder)
+    for path in sorted(folder.glob("curves_*.png")):
+        lines += ["", f"![{path.stem}]({Path('..', *path.relative_to(root).parts).as_posix()})"]
+    return "\n".join(lines) + "\n"
+
+
+def calibration_section(root: Path) -> str:
+    """The CI learning test's calibrations (``benchmarks/calibrate_learning_test.py``'s JSON files)."""
+    paths = sorted((root / RESULTS).glob("learning_test_calibration*.json"))
+    if not paths:
+        return ""
+    lines = [
+        "## The CI learning test's calibration", "",
+        "`tests/test_learning.py` trains HhP 8,000 steps on MiniGrid-Empty-Random-5x5 and evaluates 30 fresh episodes; "
+        "`python benchmarks/calibrate_learning_test.py --seeds ...` runs it seed by seed (random policy's mean "
+        "return: 0.354). `kernels`: the CPU code paths pinned (`tests/conftest.py`).", "",
+        "| file | seeds | success rate (lowest) | mean return (range) | questions (range) | kernels pinned |",
+        "| --- | ---: | ---: | ---: | ---: | --- |",
+    ]
+    for path in paths:
+        data = json.loads(path.read_text())
+        rows = pd.DataFrame(data["rows"])
+        lines.append(
+            f"| `{path.name}` | {_seeds(rows['seed'])} | {rows['success_rate'].min():.2f} | "
+            f"{rows['mean_return'].min():.3f}-{rows['mean_return'].max():.3f} | "
+            f"{int(rows['questions'].min())}-{int(rows['questions'].max())} | {'yes' if data.get('kernels') else 'no'} |")
+    return "\n".join(lines) + "\n"
+
+
+def results_page(root: Path = ROOT, plot: bool = False) -> str:
+    """The results page's text (and, with ``plot``, each sweep's learning curves written)."""
+    folders = sorted(path.parent for path in (root / RESULTS).glob("*/results.csv"))
+    if not folders:
+        raise SystemExit(f"No {RESULTS}/*/results.csv yet: run python -m benchmarks.run CONFIG first")
+    files = sweep_files(root)
+    sections = [
+        "# Results", "",
+        "Generated by `python benchmarks/report.py` from every sweep under `benchmarks/results/`: do not edit by hand "
+        "(`python benchmarks/report.py --check` says whether this page and the summaries in `README.md`, "
+        "`docs/modules/hhp.rst` and `benchmarks/README.md` are up to date). How to run a sweep: `benchmarks/README.md`.",
+        "", "## Where each task stands", "", markdown_summary(summary_rows(root)),
+    ]
+    sections += [sweep_section(folder, root, files.get(folder.name, []), plot) for folder in folders]
+    sections.append(calibration_section(root))
+    return "\n".join(section for section in sections if section).rstrip() + "\n"
+
+
+def with_block(text: str, markup: str, block: str, path: Path) -> str:
+    """``text`` with what lies between its two markers replaced by ``block``."""
+    begin, end = MARKERS[markup]
+    pattern = re.compile(rf"^{re.escape(begin)}[ \t]*\n.*?^{re.escape(end)}[ \t]*$", re.DOTALL | re.MULTILINE)
+    if len(pattern.findall(text)) != 1:
+        raise SystemExit(f"{path} needs one block between a line {begin!r} and a line {end!r}")
+    return pattern.sub(lambda _: f"{begin}\n\n{block}\n{end}", text)
+
+
+def expected_files(root: Path = ROOT, plot: bool = False) -> dict[Path, str]:
+    """Every file the report writes (the page, the three files with a marked block), with the text it should have."""
+    rows = summary_rows(root)
+    blocks = {"md": markdown_summary(rows), "rst": rst_summary(rows)}
+    expected = {root / PAGE: results_page(root, plot)}
+    for path, markup in BLOCKS.items():
+        expected[root / path] = with_block((root / path).read_text(), markup, blocks[markup], path)
+    return expected
+
+
+def write_or_check(root: Path = ROOT, check: bool = False) -> list[Path]:
+    """Write the page and the marked blocks (and the plots), or, with ``check``, write nothing.
+
+    :return: the files that were (``check``: that are) out of date
+    """
+    stale = []
+    for path, text in expected_files(root, plot=not check).items():
+        if not path.is_file() or path.read_text() != text:
+            stale.append(path)
+            if not check:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text(text)
+    return stale
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument(
-        "results", nargs="*", help="results.csv files (or their folders); default: every benchmarks/results/*/results.csv"
+        "results", nargs="*", help="one sweep's results.csv files (or their folders): benchmark.md and plots next to each"
     )
+    parser.add_argument("--check", action="store_true",
+                        help=f"write nothing; exit 1 if {PAGE} or a marked block is not what the results give")
+    parser.add_argument("--root", type=Path, default=ROOT, help="the repository's root (default: this checkout)")
     args = parser.parse_args(argv)
-    paths = [Path(path) for path in args.results]
-    paths = [path / "results.csv" if path.is_dir() else path for path in paths]
-    if not paths:
-        paths = sorted((Path(__file__).resolve().parent / "results").glob("*/results.csv"))
-        if not paths:
-            print("No benchmarks/results/*/results.csv yet: run python -m benchmarks.run CONFIG first", file=sys.stderr)
+    if args.results:
+        paths = [Path(path) for path in args.results]
+        for path in [path / "results.csv" if path.is_dir() else path for path in paths]:
+            table, markdown, plots = report(path)
+            print(table)
+            print(f"Written: {markdown}" + "".join(f", {plot}" for plot in plots))
+        return 0
+    if not list((args.root / RESULTS).glob("*/results.csv")):
+        print(f"No {RESULTS}/*/results.csv yet: run python -m benchmarks.run CONFIG first", file=sys.stderr)
+        return 1
+    stale = write_or_check(args.root, check=args.check)
+    names = ", ".join(str(path.relative_to(args.root)) for path in stale)
+    if args.check:
+        if stale:
+            print(f"Out of date: {names}. Run python benchmarks/report.py and commit what it writes.", file=sys.stderr)
             return 1
-    for path in paths:
-        table, markdown, plots = report(path)
-        print(table)
-        print(f"Written: {markdown}" + "".join(f", {plot}" for plot in plots))
+        print(f"Up to date: {PAGE} and the summaries in " + ", ".join(map(str, BLOCKS)))
+        return 0
+    print(markdown_summary(summary_rows(args.root)))
+    print(f"Written: {names}" if stale else "Nothing changed")
     return 0
 
 

@@ -1,0 +1,86 @@
+"""Tests of the benchmarks' report (benchmarks/report.py): the results page and the summaries it copies into
+README.md, docs/modules/hhp.rst and benchmarks/README.md are what the results files give, and follow them."""
+
+import re
+import shutil
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from benchmarks import report
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_the_results_page_and_the_summaries_are_up_to_date(capsys):
+    """Fails when a results file changed without ``python benchmarks/report.py`` (or a marked block was edited)."""
+    assert report.main(["--check"]) == 0, capsys.readouterr().err
+    assert report.write_or_check(ROOT, check=True) == []
+
+
+def copy_tree(tmp_path: Path) -> Path:
+    """The files the report reads and writes, copied under ``tmp_path`` (a repository root of their own)."""
+    for folder in (report.RESULTS, report.EXPERIMENTS):
+        shutil.copytree(ROOT / folder, tmp_path / folder)
+    for path in (report.PAGE, *report.BLOCKS):
+        (tmp_path / path).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(ROOT / path, tmp_path / path)
+    return tmp_path
+
+
+def block(path: Path, markup: str) -> str:
+    begin, end = report.MARKERS[markup]
+    text = path.read_text()
+    return text[text.index(begin) + len(begin):text.index(end)]
+
+
+def figures(text: str) -> list[str]:
+    """The figures of a summary, in order: ``mean ± std`` and single means."""
+    return re.findall(r"\d+\.\d\d(?: ± \d+\.\d\d)?", text)
+
+
+def test_a_changed_figure_changes_the_page_and_every_summary(tmp_path):
+    root = copy_tree(tmp_path)
+    assert report.write_or_check(root, check=True) == []
+    csv_path = root / report.RESULTS / "doorkey8x8_entry" / "results.csv"
+    results = pd.read_csv(csv_path)
+    assert results["success_det"].tolist() == [1.0] * 6  # the HhP row of DoorKey-8x8 in the summary
+    results.loc[results["seed"] == 0, "success_det"] = 0.5
+    results.to_csv(csv_path, index=False)
+
+    stale = report.write_or_check(root, check=True)
+    assert sorted(stale) == sorted([root / report.PAGE, *(root / path for path in report.BLOCKS)])
+    assert report.main(["--check", "--root", str(root)]) == 1
+    assert report.main(["--root", str(root)]) == 0
+    assert report.write_or_check(root, check=True) == []
+
+    row = "| MiniGrid-DoorKey-8x8-v0 | HhP | `doorkey8x8_entry`: `hhp` | 300,000 | 0-5 | 0.92 ± 0.20 | 1.00 ± 0.00 | 76 ± 3 | no / yes |"
+    readme = block(root / "README.md", "md")
+    assert row in readme and row in (root / report.PAGE).read_text()
+    assert block(root / "benchmarks" / "README.md", "md") == readme
+    rst = block(root / "docs" / "modules" / "hhp.rst", "rst")
+    assert "0.92 ± 0.20" in rst and figures(rst) == figures(readme)  # the three agree to the digit
+    # the sweep's own section on the page follows too; the real tree is left as it was
+    assert "| MiniGrid-DoorKey-8x8-v0 | HhP | 6 | 300,000 | 0.92 ± 0.20 |" in (root / report.PAGE).read_text()
+    assert pd.read_csv(ROOT / report.RESULTS / "doorkey8x8_entry" / "results.csv")["success_det"].min() == 1.0
+
+
+def test_every_figure_of_the_summary_names_its_seeds_steps_and_labels():
+    header, _, *rows = report.markdown_summary(report.summary_rows()).split("\n\n")[0].splitlines()
+    assert "steps" in header and "seeds" in header and "labels" in header
+    for row in rows:
+        cells = [cell.strip() for cell in row.strip("|").split("|")]
+        if cells[5] != "not run yet":
+            assert re.fullmatch(r"[\d,]+", cells[3]) and re.fullmatch(r"[\d, -]+", cells[4]), row
+            assert cells[7] != "" and cells[8] in {"yes / yes", "yes / no", "no / yes", "no / no"}, row
+    assert "python benchmarks/report.py" in report.results_page()
+    assert "python -m benchmarks.run benchmarks/experiments/doorkey8x8_entry.yml" in report.results_page()
+
+
+def test_a_missing_marker_is_named(tmp_path):
+    root = copy_tree(tmp_path)
+    readme = root / "README.md"
+    readme.write_text(readme.read_text().replace("<!-- results:end -->", ""))
+    with pytest.raises(SystemExit, match="README.md needs one block"):
+        report.write_or_check(root, check=True)
