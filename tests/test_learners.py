@@ -7,7 +7,9 @@ import torch as th
 from gymnasium import spaces
 from torch.nn import functional as F
 
-from sb3_hhp.hierarchy.learners import Indicators, OneHotCodes, Overview, StackedDQN
+from sb3_hhp.hierarchy.encoders import Overview
+from sb3_hhp.hierarchy.heads import SharedHeadsDQN
+from sb3_hhp.hierarchy.learners import StackedDQN
 from sb3_hhp.hierarchy.replay import GoalBatch, GoalTrees, SharedReplay
 
 OBS = spaces.Box(0, 255, (3,), np.uint8)
@@ -333,20 +335,6 @@ def test_a_round_updates_at_most_max_updates_subgoals_the_pursued_first_then_the
         small_learners(max_updates=0)
 
 
-def test_freed_memory_is_handed_back_every_trim_every_rounds(monkeypatch: pytest.MonkeyPatch) -> None:
-    from sb3_hhp.hierarchy import learners as module
-
-    calls = []
-    monkeypatch.setattr(module, "release_free_memory", lambda: calls.append(learners.rounds))
-    monkeypatch.setattr(module, "TRIM_EVERY", 5)
-    learners = small_learners(train_shared=True)
-    learners.add("A")
-    fill(learners.replay, ["x"] * 8, acting=[0] * 8)
-    for _ in range(12):  # a round every 2 steps (train_freq): 6 more rounds
-        observe_one(learners, acting=0)
-    assert learners.rounds >= 6 and calls == [r for r in range(1, learners.rounds + 1) if r % 5 == 0]
-
-
 def test_epsilon_decays_with_a_subgoals_own_steps() -> None:
     learners = small_learners(exploration_steps=10)
     learners.add("A")
@@ -386,7 +374,7 @@ def test_exploration_run_steps_needs_learners_that_learn_from_every_step() -> No
         small_learners(exploration_run_steps=100, train_shared=False)
 
 
-def test_state_dict_round_trip_and_older_saves_are_refused() -> None:
+def test_state_dict_round_trip_and_another_learners_state_is_refused() -> None:
     learners = small_learners()
     for goal in ("A", "B"):
         learners.add(goal)
@@ -397,8 +385,8 @@ def test_state_dict_round_trip_and_older_saves_are_refused() -> None:
     obs = np.random.default_rng(0).uniform(-1, 1, (2, 3)).astype(np.float32)
     th.testing.assert_close(restored.q_values(np.array([0, 1]), obs), learners.q_values(np.array([0, 1]), obs))
     assert restored.replay.goal_keys == ["A", "B"] and restored.adam_steps[:2].tolist() == [1, 1]
-    with pytest.raises(ValueError, match="older sb3_hhp"):
-        small_learners().load_state_dict([{"policy": {}}])
+    with pytest.raises(ValueError, match="not saved by StackedDQN"):
+        small_learners().load_state_dict({**learners.state_dict(), "format": "sb3_hhp.SharedHeadsDQN"})
 
 
 @pytest.mark.parametrize("kwargs, match", [
@@ -420,8 +408,6 @@ def test_the_heads_update_is_each_subgoals_double_dqn_loss_on_one_relabelled_bat
     (computed here with SB3's DQNPolicy view of each head; clipped to ``target_range`` where one is given), and one
     Adam step on the whole network follows."""
     import copy
-
-    from sb3_hhp.hierarchy.learners import SharedHeadsDQN
 
     learners = SharedHeadsDQN(spaces.Box(-1, 1, (3,), np.float32), ACTIONS, equal_keys, seed=0, subpolicy_kwargs=dict(
         policy_kwargs=dict(net_arch=[8]), batch_size=4, learning_starts=4, gamma=0.5, n_steps=3, learning_rate=0.01,
@@ -589,9 +575,9 @@ def test_the_inner_view_reads_every_cell_but_the_outermost_ring() -> None:
     ring = grids.copy()
     ring[:, 0], ring[:, -1], ring[:, :, 0], ring[:, :, -1] = 10, 10, 10, 10
     th.testing.assert_close(inner.q_values(goals, ring), inner.q_values(goals, grids))
-    np.testing.assert_array_equal(inner._crop(grids), grids[:, 1:-1, 1:-1])
+    np.testing.assert_array_equal(inner.input.crop(grids), grids[:, 1:-1, 1:-1])
     wide = grid_learners(spaces.Box(0, 10, (7, 9, 3), np.uint8), view="inner")
-    assert wide._crop(np.zeros((2, 7, 9, 3), np.uint8)).shape == (2, 5, 7, 3)
+    assert wide.input.crop(np.zeros((2, 7, 9, 3), np.uint8)).shape == (2, 5, 7, 3)
 
 
 @pytest.mark.parametrize("space, view, match", [
@@ -606,33 +592,6 @@ def test_the_inner_view_reads_every_cell_but_the_outermost_ring() -> None:
 def test_a_view_that_cannot_be_read_is_refused(space: spaces.Box, view: int, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         StackedDQN(space, ACTIONS, equal_keys, view=view)
-
-
-def test_an_overview_reads_each_block_of_cells_as_its_cell_of_highest_first_code() -> None:
-    """Overview(block=3) of a 7 x 7 grid: 3 x 3 blocks of 3 x 3 cells, the middle block centred on the middle cell,
-    the edge padded with code 0; each block is the first cell, row by row, of the highest code in channel 0, with all
-    its channels; an 8 x 8 grid is padded unevenly to 9 x 9."""
-    overview = Overview(GRID, 3)
-    assert overview.blocks == (3, 3) and overview.pads == ((1, 1), (1, 1)) and overview.shape == (3, 3, 3)
-    grid = np.ones((7, 7, 3), np.uint8)
-    grid[..., 1:] = 0
-    grid[3, 3] = [5, 4, 0]  # the centre: the middle block
-    grid[0, 6] = [8, 1, 0]  # a corner: the top right block (rows -1..1, columns 5..7 of the grid)
-    grid[5, 0], grid[6, 1] = [4, 2, 2], [4, 3, 1]  # two of one code in the bottom left block: the first row's wins
-    grid[2, 2] = [2, 5, 0]  # the middle block's corner: below the centre's 5
-    got = overview(np.stack([grid, grid]))
-    assert got.shape == (2, 3, 3, 3) and np.array_equal(got[0], got[1])
-    expected = np.ones((3, 3, 3), np.uint8)
-    expected[..., 1:] = 0
-    expected[1, 1], expected[0, 2], expected[2, 0] = [5, 4, 0], [8, 1, 0], [4, 2, 2]
-    assert got[0].tolist() == expected.tolist()
-    empty = overview(np.zeros((7, 7, 3), np.uint8))
-    assert not empty.any()  # padding and unseen cells alike: code 0
-    uneven = Overview(spaces.Box(0, 10, (8, 8, 3), np.uint8), 3)
-    assert uneven.blocks == (3, 3) and uneven.pads == ((0, 1), (0, 1))
-    marked = np.zeros((8, 8, 3), np.uint8)
-    marked[7, 7, 0] = 9  # the last cell: the bottom right block, which the padding completes
-    assert uneven(marked)[..., 0].tolist() == [[0, 0, 0], [0, 0, 0], [0, 0, 9]]
 
 
 def test_learners_with_an_overview_read_the_view_and_the_blocks_and_learn_as_a_learner_of_both() -> None:
@@ -650,7 +609,7 @@ def test_learners_with_an_overview_read_the_view_and_the_blocks_and_learn_as_a_l
     grids = rng.integers(1, 5, (40, 7, 7, 3)).astype(np.uint8)
     read = np.concatenate([grids[:, 2:5, 2:5].reshape(40, 1, 9, 3), Overview(GRID, 3)(grids).reshape(40, 1, 9, 3)], axis=1
                           ).reshape(40, 1, 18, 3)
-    np.testing.assert_array_equal(learners._crop(grids), read)
+    np.testing.assert_array_equal(learners.input.crop(grids), read)
     goals = np.zeros(len(grids), dtype=np.int64)
     salient = grids.copy()
     salient[:, 0, 0] = [10, 0, 0]  # outside the view, now its block's highest code
@@ -708,54 +667,6 @@ def test_a_carrying_subgoal_learns_from_empty_handed_steps_as_they_would_have_go
     assert unchanged.any() and not batch.dones[0, unchanged].any()
     with pytest.raises(ValueError, match="carry_relabel"):
         SharedReplay(16, OBS, ACTIONS, equal_keys, carry_relabel=1.5)
-
-
-def rows(weight: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-    """First layers ``(T, H, size)`` as the table Indicators reads, and each learner's first row: a learner's ``size``
-    rows (its weights transposed), then a zero row."""
-    t, h, size = weight.shape
-    table = th.zeros((t, size + 1, h), dtype=weight.dtype)
-    table[:, :size] = weight.transpose(1, 2)
-    return table.view(-1, h), th.arange(t) * (size + 1)
-
-
-def test_the_places_of_set_indicators_are_the_one_hot_inputs_and_a_first_layer_reads_them_as_the_dense_product() -> None:
-    """OneHotCodes.places gives, per observation, the places of the indicators encode sets in its flattened output,
-    increasing, then the input size as padding up to one place per used channel of every cell; Indicators.linear is
-    each learner's x @ W.T + b at those inputs (the padding cut or not), read from the weights kept as rows, and
-    Indicators.add_outer adds x.T @ g to those rows (a first layer's gradient) and leaves the zero rows zero."""
-    space = spaces.Box(0, 10, (5, 4, 3), np.uint8)
-    cells = np.random.default_rng(1).integers(0, 11, (2, 6, 5, 4, 3)).astype(np.uint8)
-    cells[0, 0] = 0  # an observation with no listed code: no indicator set
-    for listed in ([[2, 4, 5, 6], [], [1, 2]], [11, 6, 3], [[7, 3], 2, 0]):
-        codes = OneHotCodes(space, listed)
-        dense = codes.encode(cells).reshape(2, 6, -1)
-        size = dense.shape[-1]
-        places = codes.places(cells)
-        assert places.shape == (2, 6, 5 * 4 * len(codes.channels)) and places.dtype == np.int16
-        for row, row_places in zip(dense.reshape(12, -1), places.reshape(12, -1)):
-            assert row_places.tolist() == np.flatnonzero(row).tolist() + [size] * (len(row_places) - int(row.sum()))
-        generator = th.Generator().manual_seed(0)
-        weight, bias = th.randn(2, 5, size, generator=generator), th.randn(2, 5, generator=generator)
-        x = th.as_tensor(dense)
-        expected = th.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
-        grad = th.randn(2, 6, 5, generator=generator)
-        most = int((dense > 0).sum(-1).max())
-        for kept in (places, places[..., :most]):
-            inputs = Indicators(th.as_tensor(kept.astype(np.int64)), size)
-            table, starts = rows(weight)
-            assert table.shape == (2 * (size + 1), 5) and starts.tolist() == [0, size + 1]
-            th.testing.assert_close(inputs.linear(table, starts, bias), expected, rtol=1e-5, atol=1e-5)
-            th.testing.assert_close(inputs[:, 2:].linear(table, starts, bias), expected[:, 2:], rtol=1e-5, atol=1e-5)
-            # the second learner's rows alone, at another place in a larger table
-            wide = th.cat([th.zeros(3, 5), table[size + 1 :]])
-            th.testing.assert_close(inputs[1:].linear(wide, th.tensor([3]), bias[1:]), expected[1:], rtol=1e-5, atol=1e-5)
-            gradient = th.ones_like(table)
-            gradient[starts + size] = 0.0
-            inputs.add_outer(grad, gradient, starts)
-            expected_gradient = th.bmm(x.transpose(1, 2), grad)  # (2, size, 5): x.T @ g as rows
-            th.testing.assert_close(gradient.view(2, size + 1, 5)[:, :size], 1.0 + expected_gradient, rtol=1e-5, atol=1e-5)
-            assert not gradient[starts + size].any()  # the padding's rows stay zero
 
 
 def test_one_hot_updates_read_the_kept_places_and_learn_as_the_dense_input_does(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -7,10 +7,13 @@ due sub-goal together (``torch.func.vmap`` over ``functional_call``, as ensemble
 one :class:`~sb3_hhp.hierarchy.replay.SharedReplay` draws and relabels for each of them. So neither the memory
 nor the Python overhead of a primitive step grows with the number of sub-goals. :meth:`StackedDQN.policy`
 gives any sub-goal's learner back as an SB3 ``DQNPolicy``.
+
+What the networks read of an observation (``view``, ``overview``, ``one_hot``) is :mod:`sb3_hhp.hierarchy.encoders`;
+the Adam step of the rows, :mod:`sb3_hhp.hierarchy.row_adam`; the keyword arguments and their defaults,
+:mod:`sb3_hhp.hierarchy.learner_kwargs`; the learners as heads of one network (:class:`.SharedHeadsDQN`),
+:mod:`sb3_hhp.hierarchy.heads`.
 """
 
-import ctypes
-import ctypes.util
 from collections import deque
 from collections.abc import Callable, Hashable
 from typing import Any, Optional, Sequence
@@ -18,260 +21,21 @@ from typing import Any, Optional, Sequence
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first, preprocess_obs
+from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
 from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.dqn.policies import CnnPolicy, DQNPolicy, MlpPolicy
 from torch.func import functional_call, vmap
 from torch.nn import functional as F
 
 from sb3_hhp.dqn.buffers import buffer_state, load_buffer_state
+# OneHotCodes, Overview and view_cells are imported from here by tests/test_hhp.py and benchmarks/diagnostics
+from sb3_hhp.hierarchy.encoders import GridInput, Indicators, OneHotCodes, Overview, view_cells  # noqa: F401
+from sb3_hhp.hierarchy.learner_kwargs import (  # noqa: F401  (the kwargs re-exported: sb3_hhp.hhp imports them from here)
+    DEFAULT_SUBPOLICY_KWARGS, PAPER_SUBPOLICY_KWARGS, check_optional_count, check_range, checked_subpolicy_kwargs,
+    default_subpolicy_kwargs, lower_bound_option,
+)
 from sb3_hhp.hierarchy.replay import SharedReplay
-
-#: subpolicy keyword arguments the stacked learner reads (SB3 DQN's names), and those it accepts and ignores
-_USED = {
-    "learning_rate", "buffer_size", "learning_starts", "batch_size", "gamma", "train_freq", "gradient_steps", "policy_kwargs",
-    "target_update_interval", "exploration_initial_eps", "exploration_final_eps", "n_steps", "replay_buffer_kwargs",
-    "max_grad_norm", "double_q", "prioritized_replay_alpha", "prioritized_replay_beta", "prioritized_replay_eps",
-}
-_TINY = 1e-30  # added to and taken from Adam's moments: what lies below its last bit (~1e-37) becomes 0, never subnormal
-_IGNORED = {"exploration_fraction", "optimize_memory_usage", "tau", "prioritized_replay"}
-
-
-#: the paper's sub-goal learner (section 5.1): Adam lr 1e-3, batch 128, 256x256 units, an update every step,
-#: replay of 50K, one-step targets; a target network every 250 of a sub-goal's learning ticks (2,000 in the paper:
-#: a sub-goal lives a few thousand steps). ``HhP(..., subpolicy_kwargs=PAPER_SUBPOLICY_KWARGS)`` selects it.
-PAPER_SUBPOLICY_KWARGS: dict[str, Any] = dict(
-    learning_rate=1e-3, buffer_size=50_000, learning_starts=500, batch_size=128, gamma=0.99, train_freq=1,
-    gradient_steps=1, policy_kwargs=dict(net_arch=[256, 256]), target_update_interval=250, n_steps=1,
-    replay_buffer_kwargs=dict(),
-)
-
-#: the default sub-goal learner, measured to learn MiniGrid (DoorKey-5x5 to 8x8; README, Design): 64x64 units,
-#: an update of batch 32 every 4 primitive steps, 8-step returns with gamma 0.9 and the behaviour's return as a
-#: lower bound, Adam lr 1e-4, a target network every 10,000 steps
-DEFAULT_SUBPOLICY_KWARGS: dict[str, Any] = dict(
-    learning_rate=1e-4, buffer_size=50_000, learning_starts=100, batch_size=32, gamma=0.9, train_freq=4,
-    gradient_steps=1, policy_kwargs=dict(net_arch=[64, 64]), target_update_interval=10_000, n_steps=8,
-    replay_buffer_kwargs=dict(off_policy_lower_bound=True),
-)
-
-
-#: learning rounds between two returns of freed heap memory to the system (:func:`release_free_memory`)
-TRIM_EVERY = 50
-
-
-def _malloc_trim() -> Optional[Callable[[int], int]]:
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        return libc.malloc_trim  # glibc only
-    except (OSError, AttributeError):
-        return None
-
-
-_TRIM = _malloc_trim()
-
-
-def release_free_memory() -> None:
-    """Hand the heap memory that was freed back to the system (glibc's ``malloc_trim``; elsewhere nothing). A learning
-    round allocates and frees tensors of a few MB whose sizes change with the sub-goals it updates; glibc serves them
-    from its heap once one was freed, and the heap, fragmented, kept growing: with 32 sub-goals and grouped rounds a
-    run held 1.3 GB after 10,000 steps where one with 2 held 0.6 GB. Called every :data:`TRIM_EVERY` rounds."""
-    if _TRIM is not None:
-        _TRIM(0)
-
-
-def default_subpolicy_kwargs() -> dict[str, Any]:
-    """The defaults of every sub-goal learner's keyword argument (:data:`DEFAULT_SUBPOLICY_KWARGS` over the rest)."""
-    return dict(
-        exploration_initial_eps=1.0, exploration_final_eps=0.05, max_grad_norm=10.0, double_q=True,
-        prioritized_replay_alpha=0.6, prioritized_replay_beta=0.4, prioritized_replay_eps=1e-6,
-        **{key: (dict(value) if isinstance(value, dict) else value) for key, value in DEFAULT_SUBPOLICY_KWARGS.items()},
-    )
-
-
-def grid_shape(space: spaces.Space, option: str) -> tuple[int, ...]:
-    """The shape ``(H, W, C)`` of ``space``, which the learners' ``option`` reads as cells; refused otherwise."""
-    shape = getattr(space, "shape", None)
-    if not isinstance(space, spaces.Box) or shape is None or len(shape) != 3:
-        raise ValueError(f"{option} needs (H, W, C) observations, such as MiniGrid's egocentric canvas; got {space}: "
-                         f"leave {option} out (None)")
-    return shape
-
-
-def view_cells(space: spaces.Space, view: Optional[int | str]) -> Optional[tuple[slice, slice]]:
-    """The central ``view`` x ``view`` cells of ``(H, W, C)`` observations of ``space`` (rows, columns), after checking
-    that ``view`` can be read there; ``"inner"``: every cell but the outermost ring (on MiniGrid's egocentric canvas
-    the ring where only the grid's border wall ever shows: :func:`~sb3_hhp.goals.minigrid.egocentric_size`); None
-    without a view."""
-    if view is None:
-        return None
-    inner = isinstance(view, str) and view == "inner"
-    if not inner and (isinstance(view, bool) or not isinstance(view, (int, np.integer)) or view < 1 or view % 2 == 0):
-        raise ValueError(f"view (subgoal_learner_kwargs) must be an odd integer >= 1 (cells around the centre) or "
-                         f"'inner' (all but the outermost ring), got {view!r}")
-    shape = grid_shape(space, "view")
-    side = min(shape[0], shape[1])
-    if inner:
-        if side < 3:
-            raise ValueError(f"view 'inner' needs observations of at least 3 x 3 cells, got {shape[0]} x {shape[1]}: "
-                             "leave view out (None)")
-        return slice(1, shape[0] - 1), slice(1, shape[1] - 1)
-    if view > side:
-        raise ValueError(f"view {view} is larger than the observation's {shape[0]} x {shape[1]} cells: use at most "
-                         f"{side if side % 2 else side - 1}, or None for all")
-    return tuple(slice(length // 2 - view // 2, length // 2 + view // 2 + 1) for length in shape[:2])
-
-
-class Overview:
-    """A coarse copy of a whole ``(H, W, C)`` observation: ``block`` x ``block`` cells, the middle block centred on the
-    middle cell (MiniGrid's egocentric canvas: the agent), each block read as its most salient cell, the one with the
-    highest code in the first channel (MiniGrid: the object type, whose codes rank lava, goal squares, boxes, balls,
-    keys and doors above walls, floor and unseen cells), with all its channels; the edge is padded with code 0 (MiniGrid:
-    unseen). A learner that reads a small view of the cells around the agent learns from it in which direction an
-    object beyond that view lies.
-
-    :param space: the observations' space (a Box of shape ``(H, W, C)``)
-    :param block: the side of a block, odd, >= 3
-    """
-
-    def __init__(self, space: spaces.Space, block: Any) -> None:
-        if isinstance(block, bool) or not isinstance(block, (int, np.integer)) or block < 3 or block % 2 == 0:
-            raise ValueError(f"overview (subgoal_learner_kwargs) must be an odd integer >= 3 (the side of the blocks "
-                             f"of cells it reads as one), got {block!r}")
-        shape = grid_shape(space, "overview")
-        self.block = int(block)
-        # an odd number of blocks that covers each side, the middle block centred on the middle cell
-        self.blocks = tuple(2 * (-(-length // self.block) // 2) + 1 for length in shape[:2])
-        extra = [count * self.block - length for count, length in zip(self.blocks, shape[:2])]
-        self.pads = tuple((more // 2, more - more // 2) for more in extra)
-        self.shape = (*self.blocks, shape[2])
-
-    def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """``(..., H, W, C)`` observations as ``(..., blocks, blocks, C)``: each block's most salient cell."""
-        lead, (rows, columns), b = obs.shape[:-3], self.blocks, self.block
-        padded = np.pad(obs, [(0, 0)] * len(lead) + list(self.pads) + [(0, 0)])
-        cells = padded.reshape(*lead, rows, b, columns, b, obs.shape[-1])
-        cells = np.moveaxis(cells, -4, -3).reshape(*lead, rows, columns, b * b, obs.shape[-1])
-        salient = np.argmax(cells[..., 0], axis=-1)  # the first of the highest codes, row by row
-        return np.take_along_axis(cells, salient[..., None, None], axis=-2)[..., 0, :]
-
-
-class OneHotCodes:
-    """Each channel ``c`` of ``(H, W, C)`` uint8 codes as one-hot indicators of the codes ``codes[c]`` (a count ``n``:
-    the codes 0 to n - 1; a list: those codes, in its order; 0 or ``[]``: the channel left out), checked against
-    ``space``; a code not listed reads as all zeros. :meth:`encode` looks each cell's combination of listed codes up
-    in one table of their indicator rows (a few times faster than an indicator array per channel).
-
-    :param space: the observations' space (a uint8 Box of shape ``(H, W, C)``)
-    :param codes: one entry per channel
-    """
-
-    #: most combinations of listed codes (with "none listed") the lookup table holds
-    MAX_COMBINATIONS = 65_536
-
-    def __init__(self, space: spaces.Space, codes: Sequence[Any]) -> None:
-        shape = getattr(space, "shape", None)
-        if not isinstance(space, spaces.Box) or len(shape) != 3 or space.dtype != np.uint8:
-            raise ValueError(f"one_hot (subgoal_learner_kwargs) needs (H, W, C) uint8 observations of integer codes, "
-                             f"such as MiniGrid's egocentric canvas; got {space}: leave one_hot out (None)")
-        channels = [self._listed(entry) for entry in codes] if isinstance(codes, (list, tuple)) else None
-        if channels is None or len(channels) != shape[2] or None in channels or not any(channels):
-            raise ValueError(f"one_hot (subgoal_learner_kwargs) must give, for each of the observation's {shape[2]} "
-                             f"channels, its codes: a count n (codes 0 to n - 1, n from 0 to 256; 0 leaves the channel "
-                             f"out) or a list of distinct codes 0-255 (MiniGrid: [11, 6, 3] for every object, colour and "
-                             f"state), not all empty; got {codes!r}")
-        used = [(channel, listed) for channel, listed in enumerate(channels) if listed]
-        sizes = [len(listed) + 1 for _, listed in used]  # each channel's listed codes and "none listed"
-        combinations = int(np.prod(sizes))
-        if combinations > self.MAX_COMBINATIONS:
-            raise ValueError(f"one_hot (subgoal_learner_kwargs) lists codes that combine {combinations} ways over the "
-                             f"channels (at most {self.MAX_COMBINATIONS}): list fewer codes")
-        self.n_indicators = sum(size - 1 for size in sizes)
-        self.channels = []  # (channel, its code -> place among its listed codes, stride in the combined index)
-        stride = 1
-        for (channel, listed), size in zip(used, sizes):
-            place = np.full(256, size - 1, dtype=np.int32)
-            place[listed] = np.arange(len(listed))
-            self.channels.append((channel, place, stride))
-            stride *= size
-        self.table = np.zeros((combinations, self.n_indicators), dtype=np.float32)  # combination -> indicators
-        combination = np.arange(combinations)
-        offset = 0
-        for (_, place, stride), size in zip(self.channels, sizes):
-            index = (combination // stride) % size
-            listed_here = index < size - 1
-            self.table[combination[listed_here], offset + index[listed_here]] = 1.0
-            offset += size - 1
-
-    @staticmethod
-    def _listed(entry: Any) -> Optional[list[int]]:
-        """The codes of one channel's entry, None where it is malformed."""
-        if isinstance(entry, (int, np.integer)) and not isinstance(entry, bool) and 0 <= entry <= 256:
-            return list(range(int(entry)))
-        if (isinstance(entry, (list, tuple)) and len(set(entry)) == len(entry)
-                and all(isinstance(code, (int, np.integer)) and not isinstance(code, bool) and 0 <= code <= 255
-                        for code in entry)):
-            return [int(code) for code in entry]
-        return None
-
-    def encode(self, cells: np.ndarray) -> np.ndarray:
-        """``(..., H, W, C)`` uint8 codes as ``(..., H, W, n_indicators)`` float32 indicators."""
-        index = None
-        for channel, place, stride in self.channels:
-            part = np.take(place, cells[..., channel])
-            part = part * stride if stride > 1 else part
-            index = part if index is None else index + part
-        return np.take(self.table, index, axis=0)
-
-    def places(self, cells: np.ndarray) -> np.ndarray:
-        """Where the indicators that :meth:`encode` sets lie in its output flattened per observation (``H * W *
-        n_indicators`` places): ``(..., H * W * channels used)``, the most a cell's codes can set, each observation's
-        places first in increasing order, then ``H * W * n_indicators`` (padding); int16 where that fits, else int32.
-        A first layer reads them as a sum of its weights' columns (:class:`Indicators`): a MiniGrid observation has a
-        few dozen indicators set among ~1,000."""
-        lead, (h, w) = cells.shape[:-3], cells.shape[-3:-1]
-        size = h * w * self.n_indicators
-        indicators = self.encode(cells).reshape(-1, size)
-        rows, columns = np.nonzero(indicators)  # row by row, each row's in increasing order
-        counts = np.bincount(rows, minlength=len(indicators))
-        out = np.full((len(indicators), h * w * len(self.channels)), size,
-                      dtype=np.int16 if size <= np.iinfo(np.int16).max else np.int32)
-        out[rows, np.arange(len(rows)) - (np.cumsum(counts) - counts)[rows]] = columns
-        return out.reshape(*lead, out.shape[-1])
-
-
-class Indicators:
-    """One-hot inputs ``(T, N, size)`` held as the places of their set indicators (``(T, N, P)``, padded with
-    ``size``: :meth:`OneHotCodes.places`): what a first layer reads as sums of its weights' columns.
-
-    Learner ``t``'s first layer is read as rows of a table ``(R, H)``: input ``i``'s weights in row ``starts[t] + i``
-    and zeros in row ``starts[t] + size``, where the padding points (the stacked learners keep their first layers so,
-    :meth:`StackedDQN._layout`)."""
-
-    def __init__(self, places: th.Tensor, size: int) -> None:
-        self.places, self.size = places, size
-
-    def __getitem__(self, index: Any) -> "Indicators":
-        """The inputs ``index`` of the leading ``(T, N)`` axes."""
-        return Indicators(self.places[index], self.size)
-
-    def linear(self, table: th.Tensor, starts: th.Tensor, bias: th.Tensor) -> th.Tensor:
-        """``x @ W[t].T + b[t]`` of each learner ``t`` at its inputs (``W[t]``: the rows of ``table`` from
-        ``starts[t]``, ``bias`` ``(T, H)``): each output the sum of the rows at the set places, one ``embedding_bag``
-        (the padding sums the zero row; its ``padding_idx`` is several times slower)."""
-        places = self.places + starts.view(-1, 1, 1)
-        out = F.embedding_bag(places.reshape(-1, places.shape[-1]), table, mode="sum")
-        return out.view(*places.shape[:2], table.shape[1]) + bias.unsqueeze(1)
-
-    def add_outer(self, grad: th.Tensor, table: th.Tensor, starts: th.Tensor) -> None:
-        """``x[t].T @ grad[t]`` (``grad`` ``(T, N, H)``) added to learner ``t``'s rows of ``table`` (as :meth:`linear`
-        reads them): the gradient of a first layer kept as rows, each set place's row plus its sample's ``grad``; the
-        zero rows stay zero."""
-        places = self.places + starts.view(-1, 1, 1)
-        spread = grad.unsqueeze(2).expand(-1, -1, places.shape[-1], -1)  # each sample's gradient at each of its places
-        padding = table[starts + self.size].clone()
-        table.index_add_(0, places.reshape(-1), spread.reshape(-1, grad.shape[-1]))
-        table[starts + self.size] = padding
+from sb3_hhp.hierarchy.row_adam import RowAdam
 
 
 def _mlp_layers(q_net: th.nn.Module) -> Optional[list[tuple[str, Any]]]:
@@ -288,26 +52,6 @@ def _mlp_layers(q_net: th.nn.Module) -> Optional[list[tuple[str, Any]]]:
         else:
             return None
     return layers
-
-
-def _check_optional_count(name: str, value: Any) -> None:
-    """``subgoal_learner_kwargs[name]``: a whole number >= 1, or None."""
-    if value is not None and (isinstance(value, bool) or int(value) != value or value < 1):
-        raise ValueError(f"{name} (subgoal_learner_kwargs) must be an integer >= 1 or None, got {value!r}")
-
-
-def _check_range(target_range: Optional[Sequence[float]]) -> Optional[tuple[float, float]]:
-    """``subgoal_learner_kwargs['target_range']``: two finite numbers, low below high, or None."""
-    if target_range is None:
-        return None
-    try:
-        low, high = (float(value) for value in target_range)
-    except (TypeError, ValueError):
-        raise ValueError(f"target_range (subgoal_learner_kwargs) must be two numbers (low, high), e.g. [-1.0, 1.0] for "
-                         f"the returns of eq. 5 with alpha 0, got {target_range!r}") from None
-    if not (np.isfinite(low) and np.isfinite(high) and low < high):
-        raise ValueError(f"target_range (subgoal_learner_kwargs) must be finite with low < high, got {target_range!r}")
-    return low, high
 
 
 class StackedDQN:
@@ -347,7 +91,7 @@ class StackedDQN:
         (on MiniGrid's canvas it only ever shows the grid's border wall, so the learners lose nothing and their first
         layer reads a quarter fewer inputs); the replay keeps whole observations (the goal space reads them). None: the
         whole observation
-    :param overview: the learners also read a coarse copy of the whole observation (:class:`Overview`): blocks of
+    :param overview: the learners also read a coarse copy of the whole observation (:class:`.Overview`): blocks of
         ``overview`` x ``overview`` cells, each as its most salient cell, so that a learner with a small ``view`` sees
         in which direction a far object lies; odd, >= 3; MlpPolicy only. None: no overview
     :param carry_relabel: the share of a drawn batch, for a sub-goal that carries an object, replaced where possible
@@ -369,7 +113,7 @@ class StackedDQN:
     #: one priority tree for all sub-goals (the heads' shared batch) instead of one per sub-goal
     _shared_priorities = False
     #: with ``one_hot``, the shared replay keeps the places of the set indicators of what it stores (:meth:`_encoded`),
-    #: and the written-out MLP update of :meth:`train_rounds` reads them (:class:`Indicators`: the first layer's
+    #: and the written-out MLP update of :meth:`train_rounds` reads them (:class:`.Indicators`: the first layer's
     #: product as sums of a few dozen weight columns) instead of encoding every drawn state densely
     _encoded_replay = True
 
@@ -400,33 +144,24 @@ class StackedDQN:
     ) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
-        self.target_range = _check_range(target_range)
-        _check_optional_count("max_updates", max_updates)
+        self.target_range = check_range(target_range)
+        check_optional_count("max_updates", max_updates)
         self.max_updates = None if max_updates is None else int(max_updates)
         self.action_mask = action_mask  # the goal space's (GoalSpace.action_mask): actions no learner takes in a state
         self.grouped_rounds = bool(grouped_rounds)
         self.rounds = 0  # learning rounds so far
         if exploration_steps < 1:
             raise ValueError(f"exploration_steps must be >= 1, got {exploration_steps}")
-        _check_optional_count("exploration_run_steps", exploration_run_steps)
+        check_optional_count("exploration_run_steps", exploration_run_steps)
         if exploration_run_steps is not None and not (train_shared or self._shared_priorities):
             raise ValueError("exploration_run_steps (subgoal_learner_kwargs) counts the steps every learner learns "
                              "from: it needs train_shared=True (without it a learner learns only from its own steps, "
                              "and its exploration is all it has)")
-        unknown = set(subpolicy_kwargs or {}) - _USED - _IGNORED
-        if unknown:
-            raise ValueError(f"Unknown subpolicy_kwargs {sorted(unknown)}: the sub-goal learners take {sorted(_USED)}")
-        kw = {**default_subpolicy_kwargs(), **(subpolicy_kwargs or {})}
-        if callable(kw["learning_rate"]):
-            raise ValueError("subpolicy_kwargs['learning_rate'] must be a number (schedules are not supported)")
-        for name in ("train_freq", "gradient_steps", "target_update_interval", "batch_size"):
-            if isinstance(kw[name], (tuple, list)) or int(kw[name]) < 1:
-                raise ValueError(f"subpolicy_kwargs['{name}'] must be an integer >= 1 (counted in steps), got {kw[name]!r}")
+        kw = checked_subpolicy_kwargs(subpolicy_kwargs)
         self.observation_space, self.action_space = observation_space, action_space
-        self.view, self._cells = view, view_cells(observation_space, view)
-        self.overview = overview
-        self._overview = None if overview is None else Overview(observation_space, overview)
-        self._one_hot = None if one_hot is None else OneHotCodes(observation_space, one_hot)
+        self.view, self.overview = view, overview
+        self.input = GridInput(observation_space, view, overview, one_hot)  # what the networks read of a state
+        self._overview, self._one_hot = self.input.overview, self.input.one_hot
         self.kwargs = kw
         self.lr, self.gamma = float(kw["learning_rate"]), float(kw["gamma"])
         self.batch_size, self.learning_starts = int(kw["batch_size"]), int(kw["learning_starts"])
@@ -438,12 +173,7 @@ class StackedDQN:
         self.exploration_run_steps = None if exploration_run_steps is None else int(exploration_run_steps)
         self.device = th.device(device)
         self.seed = seed
-        replay_kwargs = dict(kw.get("replay_buffer_kwargs") or {})
-        if int(kw["n_steps"]) < 2 and "replay_buffer_kwargs" not in (subpolicy_kwargs or {}):
-            replay_kwargs.pop("off_policy_lower_bound", None)  # the default lower bound is an n-step return: off for one-step
-        lower_bound = bool(replay_kwargs.pop("off_policy_lower_bound", False))
-        if replay_kwargs:
-            raise ValueError(f"Unknown subpolicy replay_buffer_kwargs {sorted(replay_kwargs)}: only off_policy_lower_bound")
+        lower_bound = lower_bound_option(kw, subpolicy_kwargs)
         self.buffer_size = int(kw["buffer_size"])
         self._replay_kwargs = dict(
             observation_space=observation_space, action_space=action_space,
@@ -453,16 +183,7 @@ class StackedDQN:
             priority_eps=kw["prioritized_replay_eps"], carry_relabel=carry_relabel, counterfactual=counterfactual, seed=seed,
         )
         # SB3's CNN reads channel-first images: the env's channel-last frames are turned when they reach a network
-        net_space = observation_space
-        if self._cells is not None:  # what the networks read: the central cells
-            net_space = spaces.Box(observation_space.low[self._cells], observation_space.high[self._cells],
-                                   dtype=observation_space.dtype)
-        if self._overview is not None:  # and the overview's blocks after them, in one row of cells
-            cells = int(np.prod(net_space.shape[:2])) + int(np.prod(self._overview.shape[:2]))
-            net_space = spaces.Box(observation_space.low.min(), observation_space.high.max(),
-                                   (1, cells, net_space.shape[2]), dtype=observation_space.dtype)
-        if self._one_hot is not None:  # what the networks read: indicators
-            net_space = spaces.Box(0.0, 1.0, (*net_space.shape[:2], self._one_hot.n_indicators), np.float32)
+        net_space = self.input.space
         self._transpose = is_image_space(net_space) and not is_image_space_channels_first(net_space)
         if self._transpose:
             h, w, c = net_space.shape
@@ -493,7 +214,8 @@ class StackedDQN:
         # every sub-goal's parameters as one row of a (capacity, P) tensor: the update is one Adam step on one tensor
         self.params = th.zeros((0, self._row_size), device=self.device)
         self.target = th.zeros_like(self.params)
-        self._views: dict[Any, Any] = {}  # views of the stacked tensors (_unflatten, _adam_rows)
+        self._views: dict[Any, Any] = {}  # views of the stacked tensors (_unflatten)
+        self._optimizer: Optional[RowAdam] = None  # Adam over the rows of params (_adam), made when first needed
         self.exp_avg = th.zeros_like(self.params)
         self.exp_avg_sq = th.zeros_like(self.params)
         self.adam_steps = th.zeros(0, device=self.device)  # each sub-goal's Adam step count (float, as torch's Adam keeps it)
@@ -523,7 +245,7 @@ class StackedDQN:
         (:attr:`_keeps_encoded`) the first layer's weight ``(H, D)`` is kept as ``D`` rows of ``H`` (input ``i``'s
         weights in row ``i``), then a zero row, and the learner's row is padded with zeros to a whole number of
         ``H``: every learner's first layer is then rows of one ``(-1, H)`` view of a stacked tensor, which
-        :class:`Indicators` sums and adds gradients to in place (no copy of the weights a step). The zeros get no
+        :class:`.Indicators` sums and adds gradients to in place (no copy of the weights a step). The zeros get no
         gradient, so Adam leaves them zero. Saved models hold SB3's order (:meth:`_canonical`)."""
         self._numels = [int(np.prod(shape)) for shape in self._shapes]
         self._starts, position = [], 0
@@ -574,7 +296,7 @@ class StackedDQN:
         return rows
 
     def _first_rows(self, stacked: th.Tensor, goals: np.ndarray) -> tuple[th.Tensor, th.Tensor]:
-        """The first layers of a stacked tensor as the table :class:`Indicators` reads (a view) and the first row of
+        """The first layers of a stacked tensor as the table :class:`.Indicators` reads (a view) and the first row of
         each learner of ``goals`` in it."""
         return (stacked.view(-1, self._shapes[0][0]),
                 th.as_tensor(np.asarray(goals, dtype=np.int64) * self._table_rows, device=self.device))
@@ -609,7 +331,7 @@ class StackedDQN:
                      ) -> list[th.Tensor]:
         """A plain MLP's forward pass for every learner at once (batched matrix products): the output of every
         layer, the input first and the Q-values ``(T, N, A)`` last (the backward pass reads them). ``x``: a tensor
-        ``(T, N, D)``, or :class:`Indicators` with ``first``, the learners' first layers as rows
+        ``(T, N, D)``, or :class:`.Indicators` with ``first``, the learners' first layers as rows
         (:meth:`_first_rows`), and then ``flat`` holds the rest of each learner's row (:meth:`_unflatten` ``rest``)."""
         params = self._unflatten(flat, rest=isinstance(x, Indicators))
         outputs = [x]
@@ -632,7 +354,7 @@ class StackedDQN:
         """The gradient ``(T, P)`` of a loss with respect to the learners' rows (:meth:`_layout`) of a ReLU MLP, from
         the gradient ``grad_q`` ``(T, B, A)`` with respect to its Q-values at the inputs ``rows`` of ``outputs`` (a
         :meth:`_mlp_forward` pass over ``flat``; the first ``B`` by default): backpropagation written out, a few
-        batched matrix products; one-hot inputs (:class:`Indicators`) add each sample's gradient to the rows of its
+        batched matrix products; one-hot inputs (:class:`.Indicators`) add each sample's gradient to the rows of its
         set places."""
         params = self._unflatten(flat, rest=isinstance(outputs[0], Indicators))
         n = slice(0, grad_q.shape[1]) if rows is None else rows
@@ -662,6 +384,7 @@ class StackedDQN:
 
         self.params, self.target = extend(self.params), extend(self.target)
         self._views.clear()
+        self._optimizer = None  # its rows are views of the old tensors
         self.exp_avg, self.exp_avg_sq = extend(self.exp_avg), extend(self.exp_avg_sq)
         steps = th.zeros(capacity, device=self.device)
         steps[: len(self.adam_steps)] = self.adam_steps
@@ -707,8 +430,8 @@ class StackedDQN:
         self.own_steps = np.array(state["own_steps"], dtype=np.int64)
         self.ticks = np.array(state["ticks"], dtype=np.int64)
         self.n_updates = np.array(state["n_updates"], dtype=np.int64)
-        self.rounds = int(state.get("rounds", 0))  # absent from models saved before bounded rounds
-        self.last_round = np.array(state.get("last_round", [0] * len(self.n_updates)), dtype=np.int64)
+        self.rounds = int(state["rounds"])
+        self.last_round = np.array(state["last_round"], dtype=np.int64)
         self.recent = [deque(r, maxlen=100) for r in state["recent"]]
         self.successes, self.attempts = list(state["successes"]), list(state["attempts"])
 
@@ -727,8 +450,8 @@ class StackedDQN:
 
     def _encoded(self, obs: np.ndarray) -> np.ndarray:
         """What the networks read of observations ``(..., H, W, C)`` with ``one_hot``, as the places of the set
-        indicators (:meth:`OneHotCodes.places`; the replay keeps them: :meth:`SharedReplay.keep_encoded`)."""
-        return self._one_hot.places(self._crop(obs))
+        indicators (:meth:`.GridInput.places`; the replay keeps them: :meth:`SharedReplay.keep_encoded`)."""
+        return self.input.places(obs)
 
     def set_n_envs(self, n_envs: int) -> None:
         """Step ``n_envs`` envs from now on: a new, empty replay with a stream per env (as SB3's ``set_env`` starts
@@ -757,21 +480,9 @@ class StackedDQN:
         return float(np.mean(self.recent[goal])) if self.recent[goal] else None
 
     # ------------------------------------------------------------------ acting
-    def _crop(self, obs: np.ndarray) -> np.ndarray:
-        """What the networks read of observations ``(..., H, W, C)``: the central cells with a ``view``, else all;
-        with an ``overview``, those cells and the overview's blocks in one row ``(..., 1, cells, C)``."""
-        cells = obs if self._cells is None else obs[(..., *self._cells, slice(None))]
-        if self._overview is None:
-            return cells
-        lead, channels = obs.shape[:-3], obs.shape[-1]
-        return np.concatenate([cells.reshape(*lead, 1, -1, channels),
-                               self._overview(obs).reshape(*lead, 1, -1, channels)], axis=-2)
-
     def _tensor(self, obs: np.ndarray, cropped: bool = False) -> th.Tensor:
-        """Observations as the networks' input tensor (``cropped``: already :meth:`_crop`-ped), with ``one_hot`` as
-        indicators."""
-        obs = obs if cropped else self._crop(obs)
-        obs = obs if self._one_hot is None else self._one_hot.encode(obs)
+        """Observations as the networks' input tensor (:meth:`.GridInput.encode`; ``cropped``: already cropped)."""
+        obs = self.input.encode(obs, cropped)
         obs = np.moveaxis(obs, -1, -3) if self._transpose else obs
         return th.as_tensor(np.ascontiguousarray(obs), device=self.device)
 
@@ -852,8 +563,6 @@ class StackedDQN:
                     self.rounds += 1
             if self.grouped_rounds and plan:
                 self.train_rounds(plan, first_round=first_round)
-            if self.rounds // TRIM_EVERY > first_round // TRIM_EVERY:
-                release_free_memory()
         if due_targets.any():
             index = th.as_tensor(np.flatnonzero(due_targets), device=self.device)
             self.target[index] = self.params[index]
@@ -921,7 +630,8 @@ class StackedDQN:
                 most = max(int((x < size).sum(axis=-1).max()), 1)  # each state's places first: cut the padding
                 inputs = Indicators(th.as_tensor(x[..., :most].astype(np.int64), device=self.device), size)
             else:
-                x = np.concatenate([per_learner(self._crop(batch.observations)), per_learner(self._crop(next_obs))], axis=1)
+                crop = self.input.crop
+                x = np.concatenate([per_learner(crop(batch.observations)), per_learner(crop(next_obs))], axis=1)
                 inputs = self._mlp_input(self._tensor(x, cropped=True))
             outputs = self._mlp_forward(params, inputs, first)
             q_s = per_round(outputs[-1][:, : reps * n])
@@ -979,36 +689,19 @@ class StackedDQN:
         """TD targets ``y`` clipped to ``target_range`` (as they are without one)."""
         return y if self.target_range is None else y.clamp(*self.target_range)
 
-    def _adam_rows(self) -> tuple[list[th.Tensor], ...]:
-        """Each sub-goal's row of the parameters, of Adam's two moments and of the step counts (views, updated in
-        place), kept until the stacked tensors grow."""
-        key = "adam"  # emptied when the stacked tensors grow
-        if key not in self._views:
-            self._views[key] = tuple(list(tensor.unbind(0))
-                                     for tensor in (self.params, self.exp_avg, self.exp_avg_sq, self.adam_steps))
-        return self._views[key]
-
     def _clip(self, grad: th.Tensor) -> th.Tensor:
         """Each row's (sub-goal's) gradient norm clipped to ``max_grad_norm``, as SB3 clips a model's (in place)."""
         return grad.mul_(th.clamp(self.max_grad_norm / (th.linalg.vector_norm(grad, dim=1, keepdim=True) + 1e-6), max=1.0))
 
-    def _adam(self, goals: np.ndarray, grad: th.Tensor, round_number: int, betas: tuple[float, float] = (0.9, 0.999),
-              eps: float = 1e-8) -> None:
-        """Adam (torch's, its fused kernel) with each sub-goal's own step count on the (clipped, :meth:`_clip`)
-        gradient rows ``grad`` of ``goals`` (distinct), whose rows are updated in place; ``round_number``: the
-        learning round's."""
-        rows = self._adam_rows()
-        steps = [rows[3][g] for g in goals]
-        th._foreach_add_(steps, 1.0)  # as torch's Adam counts its step before the update
-        th._fused_adam_([rows[0][g] for g in goals], list(grad.unbind(0)), [rows[1][g] for g in goals],
-                        [rows[2][g] for g in goals], [], steps, lr=self.lr, beta1=betas[0], beta2=betas[1],
-                        weight_decay=0.0, eps=eps, amsgrad=False, maximize=False)
+    def _adam(self, goals: np.ndarray, grad: th.Tensor, round_number: int) -> None:
+        """Adam with each sub-goal's own step count and moments (:class:`~sb3_hhp.hierarchy.row_adam.RowAdam`) on the
+        (clipped, :meth:`_clip`) gradient rows ``grad`` of ``goals`` (distinct), updated in place; ``round_number``: the
+        learning round's (every 1,000th flushes the moments' subnormal floats)."""
+        if self._optimizer is None:  # made again when the stacked tensors grow
+            self._optimizer = RowAdam(self.params, self.exp_avg, self.exp_avg_sq, self.adam_steps, lr=self.lr)
+        self._optimizer.step(goals, grad)
         if round_number % 1000 == 0:
-            # moments that decay towards 0 (inputs that are always 0) become subnormal floats, which CPUs multiply
-            # several times slower: adding and taking away a small normal number now and then sends anything below
-            # its last bit (~1e-37) to exactly 0
-            for moment in (self.exp_avg, self.exp_avg_sq):
-                moment.add_(_TINY).sub_(_TINY)
+            self._optimizer.flush_subnormals()
 
     # ------------------------------------------------------------------ SB3 views, save / load
     def policy(self, goal: int) -> DQNPolicy:
@@ -1059,8 +752,8 @@ class StackedDQN:
 
     def load_state_dict(self, state: Any) -> None:
         if not isinstance(state, dict) or state.get("format") != "sb3_hhp.StackedDQN":
-            raise ValueError("These sub-goal learners were saved by an older sb3_hhp (one SB3 model per sub-goal), which "
-                             "this version cannot load: train the model again")
+            raise ValueError("These sub-goal learners were not saved by StackedDQN (subgoal_learner='stacked'): load the "
+                             "model with the subgoal_learner it was trained with")
         for key in state["goal_keys"]:
             self.add(key)
         n = len(self)
@@ -1073,240 +766,12 @@ class StackedDQN:
         self._load_counters(state)
 
 
-class GoalHeadsQNetwork(th.nn.Module):
-    """``Q(s, g, a)`` for every sub-goal ``g``: SB3's features extractor and MLP trunk, shared, then one linear
-    head per sub-goal (as h-DQN's controller is one network for every goal). Heads are stored stacked,
-    ``capacity`` of them; :meth:`grow` makes room for more.
+def __getattr__(name: str) -> Any:
+    """:class:`~sb3_hhp.hierarchy.heads.SharedHeadsDQN` (and its network) from here too, imported when first asked
+    for: it subclasses :class:`StackedDQN`, so its module imports this one."""
+    if name in ("SharedHeadsDQN", "GoalHeadsQNetwork"):
+        from sb3_hhp.hierarchy import heads
 
-    :param features_extractor: SB3's features extractor (FlattenExtractor, NatureCNN, ...)
-    :param net_arch: hidden layer sizes of the trunk
-    :param activation_fn: the trunk's activation
-    :param n_actions: primitive actions
-    :param capacity: heads allocated
-    :param observation_space: the space the network reads (for SB3's preprocessing)
-    :param normalize_images: divide image observations by 255
-    """
+        return getattr(heads, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
-    def __init__(self, features_extractor: th.nn.Module, net_arch: list[int], activation_fn: type[th.nn.Module],
-                 n_actions: int, capacity: int, observation_space: spaces.Space, normalize_images: bool = True) -> None:
-        super().__init__()
-        from stable_baselines3.common.torch_layers import create_mlp
-
-        self.features_extractor = features_extractor
-        self.trunk = th.nn.Sequential(*create_mlp(features_extractor.features_dim, -1, list(net_arch), activation_fn))
-        self.hidden_dim = net_arch[-1] if net_arch else features_extractor.features_dim
-        self.n_actions = n_actions
-        self.observation_space = observation_space
-        self.normalize_images = normalize_images
-        self.head_weight = th.nn.Parameter(th.zeros(capacity, n_actions, self.hidden_dim))
-        self.head_bias = th.nn.Parameter(th.zeros(capacity, n_actions))
-
-    @property
-    def capacity(self) -> int:
-        return self.head_weight.shape[0]
-
-    def init_head(self, goal: int, generator: Optional[th.Generator] = None) -> None:
-        """A fresh head for sub-goal ``goal`` (nn.Linear's default initialisation)."""
-        bound = 1.0 / np.sqrt(self.hidden_dim)
-        with th.no_grad():
-            self.head_weight[goal] = (th.rand(self.head_weight.shape[1:], generator=generator) * 2 - 1) * bound
-            self.head_bias[goal] = (th.rand(self.head_bias.shape[1:], generator=generator) * 2 - 1) * bound
-
-    def grow(self, capacity: int) -> None:
-        with th.no_grad():
-            weight = th.zeros(capacity, *self.head_weight.shape[1:], device=self.head_weight.device)
-            bias = th.zeros(capacity, self.n_actions, device=self.head_bias.device)
-            weight[: self.capacity], bias[: self.capacity] = self.head_weight, self.head_bias
-        self.head_weight, self.head_bias = th.nn.Parameter(weight), th.nn.Parameter(bias)
-
-    def features(self, obs: th.Tensor) -> th.Tensor:
-        obs = preprocess_obs(obs, self.observation_space, normalize_images=self.normalize_images)
-        return self.trunk(self.features_extractor(obs))
-
-    def forward(self, obs: th.Tensor, goals: Optional[th.Tensor] = None) -> th.Tensor:
-        """Q-values ``(N, capacity, A)`` of every head, or ``(N, A)`` of head ``goals[i]`` for ``obs[i]``."""
-        features = self.features(obs)
-        if goals is None:
-            return th.einsum("nh,cah->nca", features, self.head_weight) + self.head_bias
-        return th.einsum("nh,nah->na", features, self.head_weight[goals]) + self.head_bias[goals]
-
-
-class SharedHeadsDQN(StackedDQN):
-    """Every sub-goal's Double DQN learner as one head of a :class:`GoalHeadsQNetwork`, over one shared replay.
-
-    One update draws one prioritized batch of primitive transitions and relabels it for every sub-goal (eq. 5, 6
-    and each sub-goal's n-step return, when drawn): the trunk runs once on the batch whatever the number of
-    sub-goals K, so the cost of a primitive step barely grows with K. A transition's priority is its largest
-    absolute TD error over the sub-goals. ``train_freq``, ``gradient_steps`` and ``target_update_interval``
-    count primitive steps (of all envs); ``train_shared`` has no effect (every head learns at every update).
-    Arguments as :class:`StackedDQN`.
-    """
-
-    _shared_priorities = True
-    _encoded_replay = False  # its update reads the observations through the trunk (:meth:`train`)
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        if kwargs.get("carry_relabel"):
-            raise ValueError("carry_relabel (subgoal_learner_kwargs) changes each sub-goal's own batch: it needs "
-                             "subgoal_learner='stacked' (the heads learner draws one batch for all)")
-        super().__init__(*args, **kwargs)
-        policy = self._make_policy()
-        policy_kwargs = {k: v for k, v in dict(self.kwargs["policy_kwargs"] or {}).items() if k != "optimizer_kwargs"}
-        net_arch = policy_kwargs.get("net_arch", [64, 64])
-        self.network = GoalHeadsQNetwork(policy.q_net.features_extractor, net_arch, policy.q_net.activation_fn,
-                                         int(self.action_space.n), 4, policy.q_net.observation_space,
-                                         policy.q_net.normalize_images).to(self.device)
-        self.target_network = GoalHeadsQNetwork(policy.q_net_target.features_extractor, net_arch,
-                                                policy.q_net.activation_fn, int(self.action_space.n), 4,
-                                                policy.q_net.observation_space, policy.q_net.normalize_images).to(self.device)
-        self.target_network.load_state_dict(self.network.state_dict())
-        self.optimizer = th.optim.Adam(self.network.parameters(), lr=self.lr)
-        self.n_train_calls = 0
-
-    def add(self, goal_key: Hashable) -> int:
-        goal = len(self)
-        if not hasattr(self, "network"):  # StackedDQN's constructor adds nothing; nothing to do before the network
-            raise RuntimeError("add() before the network exists")
-        if goal >= self.network.capacity:
-            self._grow_heads(2 * self.network.capacity)
-        generator = th.Generator().manual_seed((self.seed or 0) * 7919 + goal) if self.seed is not None else None
-        self.network.init_head(goal, generator)
-        with th.no_grad():
-            self.target_network.head_weight[goal] = self.network.head_weight[goal]
-            self.target_network.head_bias[goal] = self.network.head_bias[goal]
-        return self._add_counters(goal_key)
-
-    def _grow_heads(self, capacity: int) -> None:
-        """More heads; Adam's moments of the old heads are kept, the new heads' start at zero."""
-        old = {name: param for name, param in self.network.named_parameters()}
-        old_state = {name: self.optimizer.state.get(param, {}) for name, param in old.items()}
-        self.network.grow(capacity)
-        self.target_network.grow(capacity)
-        self.optimizer = th.optim.Adam(self.network.parameters(), lr=self.lr)
-        for name, param in self.network.named_parameters():
-            state = old_state[name]
-            if not state:
-                continue
-            if name.startswith("head_"):
-                state = dict(state)
-                for moment in ("exp_avg", "exp_avg_sq"):
-                    grown = th.zeros_like(param)
-                    grown[: state[moment].shape[0]] = state[moment]
-                    state[moment] = grown
-            self.optimizer.state[param] = state
-
-    def q_values(self, goals: np.ndarray, obs: np.ndarray) -> th.Tensor:
-        with th.no_grad():
-            return self.network(self._tensor(np.asarray(obs)), th.as_tensor(np.asarray(goals, dtype=np.int64), device=self.device))
-
-    def observe(self, obs: np.ndarray, actions: np.ndarray, next_obs: np.ndarray, keys: list, terminated: np.ndarray,
-                truncated: np.ndarray, gave_up: np.ndarray, acting: np.ndarray, intrinsic: np.ndarray) -> None:
-        replay = self.replay
-        key_ids = np.array([replay.key_id(key) for key in keys], dtype=np.int32)
-        acting = np.asarray(acting, dtype=np.int64)
-        replay.add(obs, actions, next_obs, key_ids, terminated, truncated, gave_up, acting, intrinsic)
-        np.add.at(self.own_steps, acting[acting >= 0], 1)
-        before = int(self.ticks[0]) if len(self) else 0
-        self.ticks += len(acting)  # every head counts every primitive step
-        now = before + len(acting)
-        rounds = (now // self.train_freq - before // self.train_freq) * self.gradient_steps
-        ready = replay.size() * replay.n_envs >= max(self.learning_starts, self.batch_size)
-        if len(self) and ready:
-            for _ in range(rounds):
-                self.train(np.arange(len(self)))
-        if now // self.target_update_interval > before // self.target_update_interval:
-            self.target_network.load_state_dict(self.network.state_dict())
-
-    def train(self, goals: np.ndarray) -> float:
-        """One gradient step of the network for every sub-goal of ``goals`` on one shared, relabelled batch."""
-        replay, n_steps, batch_size = self.replay, self.replay.n_steps, self.batch_size
-        goals = np.asarray(goals, dtype=np.int64)
-        leaves, probabilities = replay.trees.sample(np.array([0]), batch_size, replay._rng)
-        leaves, weights = leaves[0], replay.importance_weights(probabilities[0])
-        rows, cols = np.divmod(leaves, replay.n_envs)
-        grid = (len(goals), batch_size)
-        row_grid, col_grid = np.broadcast_to(rows, grid), np.broadcast_to(cols, grid)
-        goal_grid = np.broadcast_to(goals[:, None], grid)
-        (returns, last, discounts, dones), behaviour = replay.n_step_returns(row_grid, col_grid, goal_grid,
-                                                                             behaviour=replay.lower_bound)
-        closings = [((last - rows) % replay.capacity, returns, discounts, dones)]
-        if behaviour is not None:
-            b_returns, b_last, b_discounts, b_dones = behaviour
-            closings.append(((b_last - rows) % replay.capacity, b_returns, b_discounts, b_dones))
-        # the states closing the returns lie among the n transitions after each drawn one: the network runs once
-        # on the distinct ones, whatever the number of sub-goals
-        pairs = np.concatenate([np.arange(batch_size) * n_steps + offset for offset, *_ in closings], axis=0)
-        distinct, inverse = np.unique(pairs, return_inverse=True)
-        inverse = inverse.reshape(len(closings), *grid)
-        draw, offset = np.divmod(distinct, n_steps)
-        next_obs_np = replay.next_observations[(rows[draw] + offset) % replay.capacity, cols[draw]]
-        next_obs = self._tensor(next_obs_np)
-        as_t = lambda x: th.as_tensor(x, device=self.device)  # noqa: E731
-        heads = as_t(goals)[:, None]
-        with th.no_grad():
-            next_q_target = self.target_network(next_obs)  # (U, capacity, A)
-            next_q_online = self.network(next_obs) if self.double_q else next_q_target
-            allowed = self._allowed(next_obs_np)
-            if allowed is not None:  # the max of the target over the actions a learner may take there
-                next_q_online = next_q_online.masked_fill(~allowed[:, None, :], -th.inf)  # (U, capacity, A)
-            y = None
-            for k, (_, k_returns, k_discounts, k_dones) in enumerate(closings):
-                index = as_t(inverse[k])
-                online, target = next_q_online[index, heads], next_q_target[index, heads]  # (T, B, A)
-                next_q = target.gather(-1, online.argmax(-1, keepdim=True))[..., 0]
-                y_k = as_t(k_returns) + as_t(k_discounts) * (1 - as_t(k_dones)) * next_q
-                y = y_k if y is None else th.maximum(y, y_k)  # the behaviour's return is a lower bound
-            y = self._in_range(y)
-        q_all = self.network(self._tensor(replay.observations[rows, cols]))  # (B, capacity, A)
-        actions = as_t(replay.actions[rows, cols].reshape(batch_size).astype(np.int64))
-        q = q_all[:, as_t(goals), :].gather(-1, actions[:, None, None].expand(-1, len(goals), 1))[..., 0].T  # (T, B)
-        mask = as_t(np.ones(grid, dtype=np.float32) if replay.share_experience
-                    else (replay.acting[rows, cols][None, :] == goals[:, None]).astype(np.float32))
-        elementwise = F.smooth_l1_loss(q, y, reduction="none") * as_t(weights)[None, :] * mask
-        loss = (elementwise.sum(dim=1) / mask.sum(dim=1).clamp(min=1)).sum()  # each sub-goal's own mean, summed
-        self.optimizer.zero_grad()
-        loss.backward()
-        th.nn.utils.clip_grad_norm_(self.network.parameters(), self.max_grad_norm)
-        self.optimizer.step()
-        td_errors = ((y - q).detach().abs() * mask).amax(dim=0).cpu().numpy()
-        replay.update_priorities(np.array([0]), leaves[None, :], td_errors[None, :])
-        self.n_updates[goals] += 1
-        self.n_train_calls += 1
-        self.last_loss = float(loss.detach()) / max(1, len(goals))
-        return self.last_loss
-
-    def policy(self, goal: int) -> DQNPolicy:
-        """Sub-goal ``goal``'s learner as an SB3 ``DQNPolicy``: the shared trunk and its own head as the last layer, on the
-        learners' device."""
-        policy = self._make_policy()
-        for q_net, network in ((policy.q_net, self.network), (policy.q_net_target, self.target_network)):
-            state = {f"features_extractor.{k}": v for k, v in network.features_extractor.state_dict().items()}
-            state.update({f"q_net.{k}": v for k, v in network.trunk.state_dict().items()})
-            state[f"q_net.{len(network.trunk)}.weight"] = network.head_weight[goal].detach().clone()
-            state[f"q_net.{len(network.trunk)}.bias"] = network.head_bias[goal].detach().clone()
-            q_net.load_state_dict(state)
-        return policy
-
-    def state_dict(self) -> dict[str, Any]:
-        return {
-            "format": "sb3_hhp.SharedHeadsDQN", "capacity": self.network.capacity,
-            "network": self.network.state_dict(), "target_network": self.target_network.state_dict(),
-            "optimizer": self.optimizer.state_dict(), **self._counters(),
-        }
-
-    def load_state_dict(self, state: Any) -> None:
-        if not isinstance(state, dict) or state.get("format") != "sb3_hhp.SharedHeadsDQN":
-            raise ValueError("These sub-goal learners were saved by an older sb3_hhp (one SB3 model per sub-goal) or with "
-                             "another subgoal learner, which this version cannot load: train the model again")
-        for key in state["goal_keys"]:
-            self.add(key)
-        if self.network.capacity < state["capacity"]:
-            self._grow_heads(state["capacity"])
-        try:
-            self.network.load_state_dict(state["network"])
-            self.target_network.load_state_dict(state["target_network"])
-        except RuntimeError as error:
-            raise ValueError("The saved sub-goal learners have another network than subpolicy_kwargs builds: load the "
-                             f"model with the subpolicy_kwargs it was trained with ({error})") from error
-        self.optimizer.load_state_dict(state["optimizer"])
-        self._load_counters(state)
