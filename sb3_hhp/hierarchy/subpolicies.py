@@ -1,8 +1,8 @@
-"""One SB3 model per sub-goal, trained online while it acts: the learners of continuous actions.
+"""One SB3 ``DDPG`` model per sub-goal, trained online while it acts: the learners of continuous (Box) actions.
 
 Discrete actions use :class:`~sb3_hhp.hierarchy.learners.StackedDQN` (every sub-goal's learner stacked over
-one shared replay). Continuous actions (Fetch) still give each sub-goal ``g`` its own SB3 ``DDPG`` with its
-own buffer: :class:`PerGoalLearners` drives them with the same interface, one primitive step at a time
+one shared replay). Continuous actions (Fetch) give each sub-goal ``g`` its own SB3 ``DDPG`` with its own
+buffer: :class:`PerGoalLearners` drives them with the same interface, one primitive step at a time
 (Algorithm 1, lines 15-20): act, store the transition with the reward of eq. 6, one gradient step. Its cost
 grows with the number of sub-goals.
 """
@@ -17,11 +17,9 @@ from stable_baselines3 import DDPG
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.utils import LinearSchedule
 from stable_baselines3.common.vec_env import VecTransposeImage
 
 from sb3_hhp.dqn.buffers import buffer_state, load_buffer_state
-from sb3_hhp.dqn.dqn import DoubleDQN
 
 
 class SpacesEnv(gym.Env):
@@ -32,33 +30,27 @@ class SpacesEnv(gym.Env):
         self.action_space = action_space
 
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):  # pragma: no cover - never stepped
-        raise RuntimeError("SpacesEnv only carries spaces; subpolicies are stepped by HierarchicalEnv")
+        raise RuntimeError("SpacesEnv only carries spaces; subpolicies are stepped by PerGoalLearners")
 
     def step(self, action):  # pragma: no cover - never stepped
-        raise RuntimeError("SpacesEnv only carries spaces; subpolicies are stepped by HierarchicalEnv")
+        raise RuntimeError("SpacesEnv only carries spaces; subpolicies are stepped by PerGoalLearners")
 
 
-def default_subpolicy_kwargs(action_space: spaces.Space) -> dict[str, Any]:
-    """The paper's defaults (section 5.1): Adam lr 1e-3, batch 128, buffers of 50K, targets every 2,000 steps."""
-    kwargs: dict[str, Any] = dict(
+def default_subpolicy_kwargs() -> dict[str, Any]:
+    """The paper's defaults (section 5.1) for a sub-goal's DDPG: Adam lr 1e-3, batch 128, buffers of 50K, 256x256
+    units, an update every step."""
+    return dict(
         learning_rate=1e-3, buffer_size=50_000, learning_starts=500, batch_size=128, gamma=0.99, train_freq=1,
         # fused Adam: one kernel per update instead of one per tensor, ~1 ms less per update on a CPU
         policy_kwargs=dict(net_arch=[256, 256], optimizer_kwargs=dict(fused=True)),
     )
-    if isinstance(action_space, spaces.Discrete):
-        # a subpolicy lives a few thousand of its own steps: its target net follows every 250 (2,000 in the paper)
-        # one-step targets as in the paper; subpolicy_kwargs=dict(n_steps=8) gives n-step returns, which the
-        # MiniGrid entry of sb3_hhp/hyperparams/hhp.yml uses (benchmarks/README.md, "Subpolicy learning")
-        kwargs.update(target_update_interval=250, exploration_fraction=1.0,
-                      exploration_initial_eps=1.0, exploration_final_eps=0.05, n_steps=1)
-    return kwargs
 
 
 class Subpolicy:
     """One sub-goal's learner, stepped by hand (no ``learn`` loop).
 
-    :param model: the SB3 off-policy model (its ``learn`` is never called)
-    :param exploration_steps: own steps over which epsilon decays (discrete) or the noise is kept (continuous)
+    :param model: the SB3 off-policy model of Box actions (its ``learn`` is never called)
+    :param exploration_steps: own steps over which the model's progress (``_current_progress_remaining``) runs out
 
     The model's own ``train_freq`` (counted in steps) and ``gradient_steps`` say how often it learns
     (1 and 1 in the paper).
@@ -78,31 +70,16 @@ class Subpolicy:
         self.successes = 0
         self.attempts = 0
         self.recent: list[bool] = []
-        self._discrete = isinstance(model.action_space, spaces.Discrete)
-        # SB3 builds image learners channel first (VecTransposeImage); HierarchicalEnv hands over env observations
+        # SB3 builds image learners channel first (VecTransposeImage); PerGoalLearners hands over env observations
         self._transpose = isinstance(model.env, VecTransposeImage)
-        if self._discrete:
-            model.exploration_schedule = LinearSchedule(
-                model.exploration_initial_eps, model.exploration_final_eps, end_fraction=1.0  # type: ignore[attr-defined]
-            )
 
     def _model_obs(self, batch: np.ndarray) -> np.ndarray:
         """A batch of env observations in the layout the model was built for."""
         return VecTransposeImage.transpose_image(batch) if self._transpose else batch
 
-    @property
-    def exploration_rate(self) -> float:
-        return float(getattr(self.model, "exploration_rate", 0.0))
-
     def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
-        """One primitive action for one observation (epsilon-greedy or noisy unless deterministic)."""
+        """One primitive action for one observation (with the model's action noise unless deterministic)."""
         model = self.model
-        if self._discrete:
-            if not deterministic and model.action_space.np_random.random() < self.exploration_rate:
-                return np.asarray(model.action_space.sample())
-            with th.no_grad():
-                obs_tensor = th.as_tensor(self._model_obs(obs[None]), device=model.device)
-                return model.policy._predict(obs_tensor, deterministic=True).cpu().numpy()[0]
         action, _ = model.predict(obs, deterministic=True)
         if not deterministic and model.action_noise is not None:
             action = np.clip(action + model.action_noise(), model.action_space.low, model.action_space.high)
@@ -115,7 +92,7 @@ class Subpolicy:
         ``off_policy``: another subpolicy acted (relabelled experience): a prioritized buffer keeps it a
         one-step transition, outside every n-step return."""
         model = self.model
-        buffer_action = action if self._discrete else model.policy.scale_action(action)
+        buffer_action = model.policy.scale_action(action)
         model.replay_buffer.add(  # type: ignore[union-attr]
             self._model_obs(obs[None]), self._model_obs(next_obs[None]), np.asarray([buffer_action]), np.asarray([reward], np.float32),
             np.asarray([done or timeout]), [{"TimeLimit.truncated": timeout and not done, "off_policy": off_policy}],
@@ -134,15 +111,13 @@ class Subpolicy:
 
     def learn_step(self) -> None:
         """One learning tick: ``gradient_steps`` gradient steps every ``train_freq`` ticks once the buffer is
-        ready, and (discrete) the target network every ``target_update_interval`` ticks. A tick is an own step,
-        or with ``train_shared`` any primitive step whose transition was stored for this subpolicy."""
+        ready (DDPG's target networks follow by Polyak averaging inside each). A tick is an own step, or with
+        ``train_shared`` any primitive step whose transition was stored for this subpolicy."""
         model = self.model
         self.num_ticks += 1
         ready = model.replay_buffer.size() >= max(model.learning_starts, model.batch_size)  # type: ignore[union-attr]
         if ready and self.num_ticks % self.train_freq == 0:
             model.train(gradient_steps=model.gradient_steps, batch_size=model.batch_size)
-        if self._discrete:
-            model._on_step()  # target network every target_update_interval ticks, epsilon from own steps
 
     def record_outcome(self, success: bool, window: int = 100) -> None:
         self.attempts += 1
@@ -157,13 +132,14 @@ class Subpolicy:
 
 
 class SubpolicySet:
-    """Builds and holds one :class:`Subpolicy` per sub-goal.
+    """Builds and holds one :class:`Subpolicy`, an SB3 ``DDPG``, per sub-goal.
 
     :param observation_space: the primitive observation space
-    :param action_space: the primitive action space (Discrete -> DoubleDQN, Box -> DDPG)
+    :param action_space: the primitive action space (a Box; discrete actions have
+        :class:`~sb3_hhp.hierarchy.learners.StackedDQN`)
     :param policy: SB3 policy name for the subpolicies ("MlpPolicy", "CnnPolicy", ...)
-    :param subpolicy_kwargs: keyword arguments of the subpolicy models (override the paper defaults)
-    :param exploration_steps: own steps over which a new subpolicy's epsilon decays to its final value
+    :param subpolicy_kwargs: SB3 DDPG's keyword arguments for the subpolicy models (over the paper's defaults)
+    :param exploration_steps: own steps over which a new subpolicy's progress runs out (SB3's schedules)
     :param logger: the logger given to every subpolicy model (a silent one by default)
     :param device: torch device
     :param seed: base seed; subpolicy ``i`` gets ``seed + i``
@@ -180,16 +156,15 @@ class SubpolicySet:
         device: str | th.device = "auto",
         seed: Optional[int] = None,
     ) -> None:
-        if not isinstance(action_space, (spaces.Discrete, spaces.Box)):
-            raise ValueError(
-                f"Subpolicies need a Discrete (DoubleDQN) or Box (DDPG) action space, got {action_space}"
-            )
+        if not isinstance(action_space, spaces.Box):
+            raise ValueError(f"SubpolicySet builds DDPG learners of Box actions, got {action_space}: the learners of "
+                             "Discrete actions are sb3_hhp.hierarchy.learners.StackedDQN")
         if exploration_steps < 1:
             raise ValueError(f"exploration_steps must be >= 1, got {exploration_steps}")
         self.observation_space = observation_space
         self.action_space = action_space
         self.policy = policy
-        self.kwargs = {**default_subpolicy_kwargs(action_space), **(subpolicy_kwargs or {})}
+        self.kwargs = {**default_subpolicy_kwargs(), **(subpolicy_kwargs or {})}
         self.exploration_steps = exploration_steps
         self.logger = logger or Logger(folder=None, output_formats=[])
         self.device = device
@@ -207,14 +182,9 @@ class SubpolicySet:
         env = SpacesEnv(self.observation_space, self.action_space)
         seed = None if self.seed is None else self.seed + len(self.policies)
         kwargs = dict(self.kwargs)
-        if isinstance(self.action_space, spaces.Discrete):
-            model: OffPolicyAlgorithm = DoubleDQN(self.policy, env, device=self.device, seed=seed, **kwargs)
-        else:
-            kwargs.setdefault(
-                "action_noise",
-                NormalActionNoise(np.zeros(self.action_space.shape), 0.1 * np.ones(self.action_space.shape)),
-            )
-            model = DDPG(self.policy, env, device=self.device, seed=seed, **kwargs)
+        kwargs.setdefault("action_noise",
+                          NormalActionNoise(np.zeros(self.action_space.shape), 0.1 * np.ones(self.action_space.shape)))
+        model = DDPG(self.policy, env, device=self.device, seed=seed, **kwargs)
         model.set_logger(self.logger)
         model._current_progress_remaining = 1.0
         subpolicy = Subpolicy(model, self.exploration_steps)
@@ -245,24 +215,21 @@ class SubpolicySet:
             for opt, opt_state in zip(_optimizers(sub.model), state["optimizers"]):
                 opt.load_state_dict(opt_state)
             sub.num_steps = state["num_steps"]
-            sub.num_ticks = state.get("num_ticks", sub.num_steps)  # saves before train_shared: ticks were own steps
+            sub.num_ticks = state["num_ticks"]
             sub.model.num_timesteps = sub.num_steps
             sub.model._n_calls = state["n_calls"]
             sub.model._current_progress_remaining = max(0.0, 1.0 - sub.num_steps / self.exploration_steps)
-            if hasattr(sub.model, "exploration_schedule"):
-                sub.model.exploration_rate = sub.model.exploration_schedule(sub.model._current_progress_remaining)
             sub.successes, sub.attempts, sub.recent = state["successes"], state["attempts"], list(state["recent"])
 
 
 def _optimizers(model: OffPolicyAlgorithm) -> list[th.optim.Optimizer]:
-    policy = model.policy
-    if hasattr(policy, "actor"):
-        return [policy.actor.optimizer, policy.critic.optimizer]
-    return [policy.optimizer]
+    """The actor's and the critic's optimizer of a DDPG model."""
+    return [model.policy.actor.optimizer, model.policy.critic.optimizer]
 
 
 class PerGoalLearners:
-    """:class:`SubpolicySet` behind the interface of :class:`~sb3_hhp.hierarchy.learners.StackedDQN` (one env).
+    """:class:`SubpolicySet` behind the interface of :class:`~sb3_hhp.hierarchy.learners.StackedDQN` (one env), for
+    the DDPG sub-goals of Box actions.
 
     :param subpolicies: the subpolicy set
     :param achieved: ``done(s, g)`` from two sub-goal keys
@@ -342,8 +309,8 @@ class PerGoalLearners:
             load_buffer_state(buffer, saved, buffer.buffer_size, f"sub-goal {goal}'s replay buffer")
 
     def load_state_dict(self, state: Any) -> None:
-        if isinstance(state, list):  # saved before the learners had an interface of their own
-            raise ValueError("These sub-goal learners were saved by an older sb3_hhp, which this version cannot load: "
-                             "train the model again")
+        if not isinstance(state, dict) or state.get("format") != "sb3_hhp.PerGoalLearners":
+            raise ValueError("These sub-goal learners were not saved by PerGoalLearners (DDPG sub-goals of Box actions): "
+                             "load the model into an env of the action space it was trained with")
         self.goal_keys = list(state["goal_keys"])
         self.subpolicies.load_state_dict(state["subpolicies"])
