@@ -157,7 +157,7 @@ class SharedReplay:
     :param lower_bound: also draw the return along the stored behaviour (needs ``n_steps > 1``)
     :param share_experience: every sub-goal learns from every transition; False: only from its own
     :param shared_priorities: one sum tree for every sub-goal (a transition's priority is set by whoever draws it,
-        :class:`~sb3_hhp.hierarchy.learners.SharedHeadsDQN`), instead of one tree per sub-goal
+        :class:`~sb3_hhp.hierarchy.heads.SharedHeadsDQN`), instead of one tree per sub-goal
     :param priority_alpha, priority_beta, priority_eps: prioritized replay's alpha, beta and epsilon
     :param carry_relabel: the share of each drawn batch, for a sub-goal that carries an object, replaced where possible
         by steps taken with empty hands as they would have gone carrying it (``counterfactual``); one-step returns
@@ -165,9 +165,6 @@ class SharedReplay:
     :param seed: seed of the draws
     """
 
-    #: replays pickled before the carried counterfactual existed draw without it
-    carry_relabel = 0.0
-    counterfactual: Optional[Callable] = None
     #: what the learners' networks read of an observation, kept beside it (:meth:`keep_encoded`); None: nothing kept
     _encode: Optional[Callable[[np.ndarray], np.ndarray]] = None
     encoded_observations: Optional[np.ndarray] = None
