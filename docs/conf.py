@@ -20,8 +20,7 @@ extensions = [
     "myst_parser",
 ]
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
-# history.md is the lab record of earlier designs (its figures are not part of the site)
-exclude_patterns = ["_build", "history.md"]
+exclude_patterns = ["_build"]
 myst_heading_anchors = 3
 
 autodoc_member_order = "bysource"
