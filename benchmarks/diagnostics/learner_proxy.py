@@ -44,7 +44,8 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[2]))
 from benchmarks.diagnostics.choice_trace import nearest_distance  # noqa: E402
 from benchmarks.speed import entry_kwargs  # noqa: E402
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
-from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS, OneHotCodes, StackedDQN, view_cells  # noqa: E402
+from sb3_hhp.hierarchy.encoders import OneHotCodes, view_cells  # noqa: E402
+from sb3_hhp.hierarchy.learners import DEFAULT_SUBPOLICY_KWARGS, StackedDQN  # noqa: E402
 
 OBJECTS = {"key": Key, "door": Door, "ball": Ball, "box": Box}
 #: the exploration schedule of SB3's DQN, which HhP's learners set with their own exploration_steps

@@ -73,7 +73,7 @@ class GoalSpace(ABC):
 
     def features(self, obs: np.ndarray) -> Optional[np.ndarray]:
         """A compact description of a batch of observations ``(B, *obs_shape)`` as float vectors ``(B, F)``
-        that recurs across layouts, for the preference predictor (``HhP(predictor_input="auto")``);
+        that recurs across layouts, for the preference predictor (``HhP(predictor_kwargs=dict(input="auto"))``);
         None (the default): the predictor reads the observations themselves."""
         return None
 

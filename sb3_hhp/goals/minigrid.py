@@ -221,22 +221,22 @@ class MiniGridGoalSpace(GoalSpace):
     :param tile_size: pixels per cell of the rendered images shown to people
     :param keep_doors_open: the sub-goal learners never close the door in front (``toggle`` is masked there, in acting
         and in their targets): a key names *a* closed door, not which, so the learner of "facing a closed door"
-        would otherwise reach it in one step by closing the door it has just opened (KeyCorridor; README, Design)
+        would otherwise reach it in one step by closing the door it has just opened (KeyCorridor; design decisions)
     :param count_open_doors: a key that faces an open door also holds how many doors of the grid are open, e.g.
         ``(carried, door, open, 2)``: "open the door in front" is then a sub-goal of its own, which turning to a door
         opened before does not reach (without it, the learner of "facing an open door" asked in front of a closed
-        door turns to the open one beside it, and the choice repeats without end; KeyCorridor, README, Design).
+        door turns to the open one beside it, and the choice repeats without end; KeyCorridor, design decisions).
         :meth:`present` then also holds ``(OPEN_DOORS, n)``
     :param mark_blockers: a key that faces a key, a ball or a box that blocks the way (with its cell free the agent
         could reach cells it cannot reach now, doors counted as open: :func:`blockers`) gives it the state
         :data:`BLOCKS`, e.g. ``(nothing, ball, BLOCKS)``, as :meth:`present` does such objects within reach: a ball
         in front of a door is then another sub-goal than the ball moved aside (ObstructedMaze, where the learner of
         "facing a ball", asked after the blocking ball was picked up, put it back on its cell, its quickest way;
-        benchmarks/README.md)
+        docs/design_decisions.rst)
     :param count_blockers: the features (what the predictor, and with ``meta_input`` features the meta-controller,
         read) also hold how many objects on the canvas block the way (0, 1, 2 or more; :func:`blockers`): whether the
         key in hand goes to its door or is put down to move a ball first depends on it (ObstructedMaze,
-        benchmarks/README.md). Keys are unchanged
+        docs/design_decisions.rst). Keys are unchanged
     """
 
     name = "minigrid"

@@ -316,11 +316,12 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         """``policy_kwargs`` with the goal space's features as the meta-controller's features extractor when
         ``meta_input`` asks for them (and no extractor is named)."""
         policy_kwargs = dict(policy_kwargs or {})
-        reads_features = self._reads_features("meta_input", self.meta_input)
+        reads_features = self._reads_features("meta_kwargs['input']", self.meta_input)
         if self.meta_input == "auto" and self.subpolicy_policy == "CnnPolicy":
             reads_features = False  # CnnPolicy asks for a CNN on the observation
         if self.meta_input == "features" and "features_extractor_class" in policy_kwargs:
-            raise ValueError("meta_input='features' sets the features extractor: remove features_extractor_class from policy_kwargs")
+            raise ValueError("meta_kwargs['input']='features' sets the features extractor: remove features_extractor_class "
+                             "from policy_kwargs")
         if reads_features and "features_extractor_class" not in policy_kwargs:
             policy_kwargs.update(features_extractor_class=GoalSpaceFeatures, features_extractor_kwargs=dict(goal_space=self.goal_space))
         return policy_kwargs
@@ -354,7 +355,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         self.rnd = RND(obs_space, device=device, seed=self.seed, **self.rnd_kwargs) if self.use_curiosity else None
         predictor_kwargs = dict(buffer_size=max(1, self.query_budget), device=device, seed=self.seed)
         predictor_kwargs.update({key: value for key, value in self.predictor_kwargs.items() if key != "input"})
-        self._predictor_reads_features = self._reads_features("predictor_input", self.predictor_input)
+        self._predictor_reads_features = self._reads_features("predictor_kwargs['input']", self.predictor_input)
         predictor_space = (
             spaces.Box(-np.inf, np.inf, (self.goal_space.features_dim(obs_space),), np.float32)
             if self._predictor_reads_features else obs_space

@@ -2,7 +2,7 @@
 
 :class:`GoalHeadsQNetwork` is ``Q(s, g, a)`` for every sub-goal at once (as h-DQN's controller is one network for
 every goal); :class:`SharedHeadsDQN` trains it with :class:`~sb3_hhp.hierarchy.learners.StackedDQN`'s interface
-(``subgoal_learner="heads"``), one prioritized batch relabelled for every sub-goal, one ``torch.optim.Adam`` step.
+(``subgoal_learner_kwargs=dict(kind="heads")``), one prioritized batch relabelled for every sub-goal, one ``torch.optim.Adam`` step.
 """
 
 from collections.abc import Hashable
@@ -92,7 +92,7 @@ class SharedHeadsDQN(StackedDQN):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         if kwargs.get("carry_relabel"):
             raise ValueError("carry_relabel (subgoal_learner_kwargs) changes each sub-goal's own batch: it needs "
-                             "subgoal_learner='stacked' (the heads learner draws one batch for all)")
+                             "subgoal_learner_kwargs kind='stacked' (the heads learner draws one batch for all)")
         super().__init__(*args, **kwargs)
         policy = self._make_policy()
         policy_kwargs = {k: v for k, v in dict(self.kwargs["policy_kwargs"] or {}).items() if k != "optimizer_kwargs"}
@@ -238,7 +238,7 @@ class SharedHeadsDQN(StackedDQN):
 
     def load_state_dict(self, state: Any) -> None:
         if not isinstance(state, dict) or state.get("format") != "sb3_hhp.SharedHeadsDQN":
-            raise ValueError("These sub-goal learners were not saved by SharedHeadsDQN (subgoal_learner='heads'): load "
+            raise ValueError("These sub-goal learners were not saved by SharedHeadsDQN (subgoal_learner_kwargs kind='heads'): load "
                              "the model with the subgoal_learner it was trained with")
         for key in state["goal_keys"]:
             self.add(key)

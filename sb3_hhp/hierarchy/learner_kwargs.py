@@ -27,7 +27,7 @@ PAPER_SUBPOLICY_KWARGS: dict[str, Any] = dict(
     replay_buffer_kwargs=dict(),
 )
 
-#: the default sub-goal learner, measured to learn MiniGrid (DoorKey-5x5 to 8x8; README, Design): 64x64 units,
+#: the default sub-goal learner, measured to learn MiniGrid (DoorKey-5x5 to 8x8; design decisions): 64x64 units,
 #: an update of batch 32 every 4 primitive steps, 8-step returns with gamma 0.9 and the behaviour's return as a
 #: lower bound, Adam lr 1e-4, a target network every 10,000 steps
 DEFAULT_SUBPOLICY_KWARGS: dict[str, Any] = dict(

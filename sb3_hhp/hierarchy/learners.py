@@ -28,8 +28,7 @@ from torch.func import functional_call, vmap
 from torch.nn import functional as F
 
 from sb3_hhp.dqn.buffers import buffer_state, load_buffer_state
-# OneHotCodes, Overview and view_cells are imported from here by tests/test_hhp.py and benchmarks/diagnostics
-from sb3_hhp.hierarchy.encoders import GridInput, Indicators, OneHotCodes, Overview, view_cells  # noqa: F401
+from sb3_hhp.hierarchy.encoders import GridInput, Indicators
 from sb3_hhp.hierarchy.learner_kwargs import (  # noqa: F401  (the kwargs re-exported: sb3_hhp.hhp imports them from here)
     DEFAULT_SUBPOLICY_KWARGS, PAPER_SUBPOLICY_KWARGS, check_optional_count, check_range, checked_subpolicy_kwargs,
     default_subpolicy_kwargs, lower_bound_option,
@@ -752,7 +751,7 @@ class StackedDQN:
 
     def load_state_dict(self, state: Any) -> None:
         if not isinstance(state, dict) or state.get("format") != "sb3_hhp.StackedDQN":
-            raise ValueError("These sub-goal learners were not saved by StackedDQN (subgoal_learner='stacked'): load the "
+            raise ValueError("These sub-goal learners were not saved by StackedDQN (subgoal_learner_kwargs kind='stacked'): load the "
                              "model with the subgoal_learner it was trained with")
         for key in state["goal_keys"]:
             self.add(key)
