@@ -123,7 +123,7 @@ def test_hhp_trains_ddpg_subpolicies_on_fetch_reach_and_round_trips(tmp_path) ->
     th.set_num_threads(1)
     model = HhP(
         "MlpPolicy", gym.make(REACH), oracle="scripted", query_budget=6, seed=0, learning_starts=100,
-        predictor_kwargs=dict(n_masks=20),
+        predictor_kwargs=dict(n_masks=20), subgoal_learner_kwargs=dict(kind="per_goal"),
         subpolicy_kwargs=dict(learning_starts=64, batch_size=32, policy_kwargs=dict(net_arch=[32, 32])),
     )
     assert isinstance(model.goal_space, FetchGoalSpace)

@@ -103,6 +103,35 @@ class FetchGoalSpace(GoalSpace):
     def key(self, obs: np.ndarray) -> Hashable:
         return tuple(int(v) for v in np.floor(self.achieved_position(obs) / self.cell_size))
 
+    def solved(self, obs: np.ndarray) -> np.ndarray:
+        """Whether the achieved position is within ``distance_threshold`` of the target (the env's ``is_success``),
+        for an observation or a batch."""
+        distance = np.linalg.norm(self.achieved_position(obs) - self.desired_position(obs), axis=-1)
+        return distance <= self.distance_threshold
+
+    def terminal_key(self, obs: np.ndarray, reward: float, terminated: bool) -> Hashable:
+        """:data:`SUCCESS_KEY` where the task is solved (a Fetch episode never terminates: it is solved where the
+        achieved position is at the target), else the place's key."""
+        return SUCCESS_KEY if bool(self.solved(obs)) else self.key(obs)
+
+    def choosable(self, key: Hashable, goal_key: Hashable, present: Optional[frozenset] = None) -> bool:
+        """Every place but the one reached; the task's target always (success is judged at the episode's last step:
+        where it is reached it is held)."""
+        return goal_key == SUCCESS_KEY or not self.achieved(key, goal_key)
+
+    def goal_position(self, key: Optional[Hashable], obs: np.ndarray) -> np.ndarray:
+        """The place (metres) a sub-goal asks for in state ``obs``: its cell's centre; the state's target for the
+        task's own goal (:data:`SUCCESS_KEY`) or for none (``key`` None)."""
+        if key is None or key == SUCCESS_KEY:
+            return self.desired_position(obs)
+        return self.cell_center(key)
+
+    @staticmethod
+    def state_part(obs: np.ndarray) -> np.ndarray:
+        """A flat observation without its achieved and desired positions (what a goal-conditioned learner reads
+        beside the place it is sent to)."""
+        return np.asarray(obs)[..., :-6]
+
     def cell_center(self, key: Hashable) -> np.ndarray:
         """The centre (metres) of a key's cell."""
         return (np.asarray(key, dtype=np.float64) + 0.5) * self.cell_size
@@ -127,11 +156,10 @@ class FetchGoalSpace(GoalSpace):
     def query_info(self, state: np.ndarray, goal1_obs: np.ndarray, goal2_obs: np.ndarray) -> dict[str, Any]:
         """What :class:`~sb3_hhp.oracles.fetch.FetchScriptedOracle` reads: the state's target and each
         sub-goal's achieved position (where it was found), in metres."""
-        return {
-            "desired_goal": self.desired_position(state).tolist(),
-            "goal1_achieved": self.achieved_position(goal1_obs).tolist(),
-            "goal2_achieved": self.achieved_position(goal2_obs).tolist(),
-        }
+        desired = self.desired_position(state)
+        # the task's own goal ("task solved", found where a target was reached) is the target of this state
+        places = [desired if self.solved(obs) else self.achieved_position(obs) for obs in (goal1_obs, goal2_obs)]
+        return {"desired_goal": desired.tolist(), "goal1_achieved": places[0].tolist(), "goal2_achieved": places[1].tolist()}
 
     def image_of(self, obs: np.ndarray) -> np.ndarray:
         """Two panels, seen from above (x right, y up) and from the side (x right, z up), of the region

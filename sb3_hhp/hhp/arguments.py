@@ -40,13 +40,14 @@ PREDICTOR_KEYS = (frozenset(inspect.signature(PreferencePredictor.__init__).para
 DISCOVERY_DEFAULTS: dict[str, Any] = dict(strategy="csd", subgoals=None, percentile=5.0, min_visits=2,
                                           similarity_threshold=0.5, before_success=False, percentile_of="visited")
 #: ``subgoal_learner_kwargs``: how the sub-goal learners learn, beside their SB3 arguments (``subpolicy_kwargs``): the
-#: ``kind`` of the learners of discrete actions ("stacked": a network each, updated in one call; "heads": one trunk,
-#: a head each); own steps over which a learner's epsilon decays, and the run's steps since it was added over which
+#: ``kind`` of the learners (discrete actions: "stacked", a network each, updated in one call, or "heads", one trunk and
+#: a head each; continuous actions: "goal_conditioned", one model for every place, trained with hindsight, or
+#: "per_goal", an SB3 DDPG per sub-goal; None: "stacked" or "goal_conditioned"); own steps over which a learner's epsilon decays, and the run's steps since it was added over which
 #: it decays too (None: own steps only); whether every transition also trains the other sub-goals' learners; whether
 #: they update on every primitive step (None: True for discrete actions); most learners updated in one round; the
 #: learning rounds of one step of the envs in one call; the cells around the agent they read; the one-hot encoding of
 #: each channel; the coarse overview of the observation; the range their TD targets are clipped to
-SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(kind="stacked", exploration_steps=5_000, exploration_run_steps=None,
+SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(kind=None, exploration_steps=5_000, exploration_run_steps=None,
                                                 share_experience=True, train_shared=None, max_updates=8,
                                                 grouped_rounds=False, view=None, carry_relabel=0.0, one_hot=None,
                                                 overview=None, target_range=None)
@@ -71,7 +72,7 @@ GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
 #: the choices some keys are limited to
 CHOICES: dict[tuple[str, str], tuple] = {
     ("discovery_kwargs", "strategy"): ("csd", "random", "none"),
-    ("subgoal_learner_kwargs", "kind"): ("stacked", "heads"),
+    ("subgoal_learner_kwargs", "kind"): (None, "stacked", "heads", "goal_conditioned", "per_goal"),
     ("predictor_kwargs", "input"): ("auto", "features", "observation"),
     ("meta_kwargs", "input"): ("auto", "features", "observation"),
     ("meta_kwargs", "center_bonus"): (True, False, "mean", "max"),

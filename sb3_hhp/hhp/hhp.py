@@ -45,6 +45,7 @@ from sb3_hhp.hierarchy.learners import SharedHeadsDQN, StackedDQN
 from sb3_hhp.hierarchy.options import (
     EpisodeTrace, OptionRunner, PrimitiveVecEnv, Subgoal, SubgoalSet, SubgoalVecEnv, check_vec_env, env_view,
 )
+from sb3_hhp.hierarchy.goal_conditioned import GoalConditionedLearner
 from sb3_hhp.hierarchy.subpolicies import PerGoalLearners, SubpolicySet
 from sb3_hhp.oracles.base import Oracle
 from sb3_hhp.oracles.registry import make_oracle
@@ -242,6 +243,8 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         check_grouped(self.query_kwargs, self.predictor_kwargs, self.discovery_kwargs, self.subgoal_learner_kwargs,
                       self.meta_kwargs)
         learner, meta = self.subgoal_learner_kwargs, self.meta_kwargs
+        if learner["kind"] is None and env is not None:
+            learner["kind"] = "goal_conditioned" if _continuous_actions(env) else "stacked"
         if learner["train_shared"] is None:  # discrete sub-goal learners train on every step; one DDPG model each does not
             learner["train_shared"] = learner["share_experience"] and (env is None or not _continuous_actions(env))
         subgoals = self.discovery_kwargs.pop("subgoals")
@@ -367,7 +370,12 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         self.return_normalizer = PreferenceReturnNormalizer(gamma=0.99, rollout_length=64)
         alpha = self.alpha if self.use_curiosity else 0.0
         learner = self.subgoal_learner_kwargs
-        if isinstance(self.primitive_action_space, spaces.Discrete):
+        discrete = isinstance(self.primitive_action_space, spaces.Discrete)
+        if discrete != (self.subgoal_learner in SUBGOAL_LEARNERS):
+            raise ValueError(f"subgoal_learner_kwargs kind {self.subgoal_learner!r} does not suit "
+                             f"{self.primitive_action_space}: discrete actions take 'stacked' or 'heads', continuous "
+                             "ones 'goal_conditioned' or 'per_goal'")
+        if discrete:
             self.subpolicies = SUBGOAL_LEARNERS[self.subgoal_learner](
                 obs_space, self.primitive_action_space, self.goal_space.achieved, policy=self.subpolicy_policy,
                 subpolicy_kwargs=self.subpolicy_kwargs, alpha=alpha, n_envs=self.n_envs, device=device, seed=self.seed,
@@ -375,14 +383,23 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
                 **{key: value for key, value in learner.items() if key != "kind"},
             )
         else:
-            # the options of the learners of discrete actions, each with the value that leaves it unset (models saved
-            # before an option have no key)
+            # the options of the learners of discrete actions, each with the value that leaves it unset
             for name, unset in (("exploration_run_steps", None), ("carry_relabel", 0.0), ("target_range", None),
                                 ("one_hot", None), ("overview", None), ("view", None)):
-                if learner.get(name, unset) != unset:
+                if learner[name] != unset:
                     raise ValueError(f"subgoal_learner_kwargs['{name}'] applies to the learners of discrete actions; this "
-                                     f"env's sub-goal learners are DDPG models that explore over their own steps and read "
-                                     f"the whole observation as it is: leave {name} out (leave it out for DDPG sub-goals)")
+                                     f"env's sub-goal learners are continuous-action models that read the whole "
+                                     f"observation as it is: leave {name} out")
+        if self.subgoal_learner == "goal_conditioned":
+            space = self.goal_space
+            if not hasattr(space, "goal_position"):
+                raise ValueError(f"subgoal_learner_kwargs kind 'goal_conditioned' needs a goal space whose sub-goals are "
+                                 f"places (goal_position, state_part: FetchGoalSpace); {type(space).__name__} has none")
+            self.subpolicies = GoalConditionedLearner(
+                obs_space, self.primitive_action_space, space.achieved_position, space.state_part, space.goal_position,
+                space.distance_threshold, alpha=alpha, subpolicy_kwargs=self.subpolicy_kwargs, n_envs=self.n_envs,
+                device=device, seed=self.seed)
+        elif self.subgoal_learner == "per_goal":
             self.subpolicies = PerGoalLearners(
                 SubpolicySet(obs_space, self.primitive_action_space, policy=self.subpolicy_policy,
                              subpolicy_kwargs=self.subpolicy_kwargs, exploration_steps=learner["exploration_steps"],
@@ -752,8 +769,12 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
                 raise ValueError(f"{path} is truncated or damaged: it begins as a saved model (a zip archive) but its end "
                                  f"is missing or unreadable ({error}); use a complete copy") from error
             raise ValueError(f"{path} is not a saved HhP model (not a zip archive): {error}") from error
+        # settings that are keys of a *_kwargs dict (HhP.load(path, break_cycles=False)) go into their dict
+        grouped_settings = {name: kwargs.pop(name) for name in list(kwargs) if isinstance(vars(cls).get(name), _Grouped)}
         model = super().load(file, env=None, device=device, custom_objects=custom_objects,
                              print_system_info=print_system_info, force_reset=force_reset, **kwargs)
+        for name, value in grouped_settings.items():
+            setattr(model, name, value)
         model.load_components_state(components)
         if env is not None:
             model.set_env(env, force_reset=force_reset)

@@ -1,0 +1,287 @@
+"""One goal-conditioned learner for every sub-goal of continuous actions (Fetch), trained with hindsight.
+
+A Fetch sub-goal is a place, a continuous goal: one SB3 off-policy model (SAC by default; TD3 or DDPG with
+``subpolicy_kwargs=dict(algo="td3")``) reads the state and the place to reach, as the low levels of HAC and HIRO
+do (UVFA), so every sub-goal, discovered or not, shares the experience and the cost of a step does not grow with
+the number of sub-goals. Its input is SB3's goal-env layout, a dict of ``observation`` (the state without the
+positions), ``achieved_goal`` and ``desired_goal`` (the sub-goal's place), read by ``MultiInputPolicy``.
+
+:class:`HindsightReplay` keeps every primitive transition of every env once, with the place the env's learner was
+sent to; when a batch is drawn, a share ``future_p`` of the goals is replaced by a place reached later in the same
+episode (HER's ``future`` strategy, 4 relabelled goals per real one: 0.8), and the reward is eq. 6: the pseudo-reward
+of eq. 5 (``+1`` where ``done(s', g)``, the place within ``distance_threshold``; ``-1`` where the episode terminates
+short of it; ``0`` otherwise) plus ``alpha`` times the curiosity reward of the step. A place can be held, so reaching
+one does not end the learner's return (design decisions: the Fetch sub-goal learner).
+"""
+
+from collections import deque
+from collections.abc import Callable, Hashable
+from typing import Any, Optional
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import DDPG, SAC, TD3
+from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.type_aliases import DictReplayBufferSamples
+
+from sb3_hhp.hierarchy.rewards import pseudo_reward, subpolicy_reward
+from sb3_hhp.hierarchy.subpolicies import SpacesEnv
+
+#: the off-policy algorithms the learner may be
+ALGOS = {"sac": SAC, "td3": TD3, "ddpg": DDPG}
+#: the learner's SB3 arguments by default: RL Zoo's FetchReach settings (gamma 0.95, lr 1e-3, batch 256,
+#: learning_starts 1,000) with the paper's 256 hidden units
+DEFAULT_KWARGS: dict[str, Any] = dict(algo="sac", learning_rate=1e-3, buffer_size=500_000, learning_starts=1_000,
+                                      batch_size=256, gamma=0.95, gradient_steps=1, future_p=0.8,
+                                      policy_kwargs=dict(net_arch=[256, 256]))
+
+
+class HindsightReplay:
+    """Primitive transitions of ``n_envs`` envs in a ring of ``buffer_size // n_envs`` steps each, goals relabelled
+    with future places of the same episode when a batch is drawn.
+
+    :param obs_dim: length of a flat observation
+    :param action_dim: length of an action
+    :param buffer_size: transitions kept (all envs)
+    :param n_envs: envs stepped together
+    :param future_p: share of a batch whose goal becomes a place reached later in the episode
+    :param distance_threshold: ``done(s, g)``: within this distance (metres) of the goal
+    :param alpha: weight of the curiosity reward (eq. 6)
+    :param seed: the sampler's seed
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, buffer_size: int, n_envs: int, future_p: float,
+                 distance_threshold: float, alpha: float, seed: Optional[int] = None) -> None:
+        if not 0.0 <= future_p <= 1.0:
+            raise ValueError(f"future_p must be in [0, 1], got {future_p}")
+        self.steps = max(1, buffer_size // n_envs)
+        self.n_envs, self.future_p, self.distance_threshold, self.alpha = n_envs, future_p, distance_threshold, alpha
+        shape = (self.steps, n_envs)
+        self.obs = np.zeros((*shape, obs_dim), np.float32)
+        self.next_obs = np.zeros((*shape, obs_dim), np.float32)
+        self.actions = np.zeros((*shape, action_dim), np.float32)
+        self.achieved = np.zeros((*shape, 3), np.float32)  # the place reached by the step
+        self.goals = np.zeros((*shape, 3), np.float32)  # the place the learner was sent to
+        self.intrinsic = np.zeros(shape, np.float32)
+        self.terminated = np.zeros(shape, bool)
+        self.step_id = np.zeros(shape, np.int64)  # the step counter of each row, to find its future
+        self.episode_end = np.zeros(shape, np.int64)  # the step of its episode's last row (-1: running)
+        self.episode_start = np.zeros(n_envs, np.int64)
+        self.count = 0  # steps added (each one row per env)
+        self.rng = np.random.default_rng(seed)
+
+    def size(self) -> int:
+        return min(self.count, self.steps) * self.n_envs
+
+    def add(self, obs: np.ndarray, next_obs: np.ndarray, actions: np.ndarray, achieved: np.ndarray, goals: np.ndarray,
+            intrinsic: np.ndarray, terminated: np.ndarray, ended: np.ndarray) -> None:
+        """One step of every env; ``ended``: its episode ended with this step (a time limit or a termination)."""
+        row = self.count % self.steps
+        self.obs[row], self.next_obs[row], self.actions[row] = obs, next_obs, actions
+        self.achieved[row], self.goals[row], self.intrinsic[row] = achieved, goals, intrinsic
+        self.terminated[row], self.step_id[row], self.episode_end[row] = terminated, self.count, -1
+        for env in np.flatnonzero(ended):
+            first = max(int(self.episode_start[env]), self.count - self.steps + 1)
+            self.episode_end[np.arange(first, self.count + 1) % self.steps, env] = self.count
+            self.episode_start[env] = self.count + 1
+        self.count += 1
+
+    def relabelled(self, batch_size: int) -> tuple[np.ndarray, ...]:
+        """A batch: rows, their goals (a future place with probability ``future_p``), eq. 6 rewards, dones."""
+        rows = self.rng.integers(min(self.count, self.steps), size=batch_size)
+        envs = self.rng.integers(self.n_envs, size=batch_size)
+        goals = self.goals[rows, envs].copy()
+        future = self.rng.random(batch_size) < self.future_p
+        if future.any():
+            start = self.step_id[rows[future], envs[future]]
+            end = self.episode_end[rows[future], envs[future]]
+            end = np.where(end < 0, self.count - 1, end)  # a running episode: its latest step
+            later = start + (self.rng.random(len(start)) * (end - start + 1)).astype(np.int64)
+            goals[future] = self.achieved[later % self.steps, envs[future]]
+        reached = np.linalg.norm(self.achieved[rows, envs] - goals, axis=1) <= self.distance_threshold
+        terminated = self.terminated[rows, envs]
+        rewards = subpolicy_reward(pseudo_reward(reached, reached | terminated), self.intrinsic[rows, envs],
+                                   self.alpha)  # eq. 5, 6
+        return rows, envs, goals, np.asarray(rewards, np.float32), terminated
+
+    def state(self) -> dict[str, Any]:
+        return {name: getattr(self, name) for name in ("obs", "next_obs", "actions", "achieved", "goals", "intrinsic",
+                                                       "terminated", "step_id", "episode_end", "episode_start", "count")}
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        if state["obs"].shape != self.obs.shape:
+            raise ValueError(f"the saved replay holds {state['obs'].shape[:2]} (steps, envs) of transitions, this one "
+                             f"{self.obs.shape[:2]}: load it into a model with the same buffer_size and number of envs")
+        for name, value in state.items():
+            setattr(self, name, value if np.isscalar(value) else np.array(value, copy=True))
+
+
+class _Sampler:
+    """What the SB3 model's ``train`` draws batches from (``replay_buffer.sample``), in its goal-env layout."""
+
+    def __init__(self, learner: "GoalConditionedLearner") -> None:
+        self.learner = learner
+
+    def sample(self, batch_size: int, env: Any = None) -> DictReplayBufferSamples:
+        learner, replay = self.learner, self.learner.replay
+        rows, envs, goals, rewards, dones = replay.relabelled(batch_size)
+        device = learner.model.device
+
+        def tensors(flat: np.ndarray) -> dict[str, th.Tensor]:
+            return {key: th.as_tensor(value, device=device) for key, value in learner.inputs(flat, goals).items()}
+
+        return DictReplayBufferSamples(
+            observations=tensors(replay.obs[rows, envs]),
+            actions=th.as_tensor(replay.actions[rows, envs], device=device),
+            next_observations=tensors(replay.next_obs[rows, envs]),
+            dones=th.as_tensor(dones.astype(np.float32)[:, None], device=device),
+            rewards=th.as_tensor(rewards[:, None], device=device),
+            discounts=None,
+        )
+
+
+class GoalConditionedLearner:
+    """Every sub-goal's learner of continuous actions as one goal-conditioned SB3 model (the interface of
+    :class:`~sb3_hhp.hierarchy.learners.StackedDQN`: ``add``, ``act``, ``observe``, ...).
+
+    :param observation_space: the flat primitive observation space
+    :param action_space: the primitive (Box) action space
+    :param position: the place of a batch of observations ``(B, D) -> (B, 3)`` (the goal space's achieved position)
+    :param state: the rest of a batch of observations ``(B, D) -> (B, D')`` the model reads beside the places
+    :param goal_position: the place of a sub-goal key in a state ``(key, obs (D,)) -> (3,)``
+    :param distance_threshold: ``done(s, g)`` in metres
+    :param alpha: weight of the intrinsic reward in eq. 6
+    :param subpolicy_kwargs: the model's SB3 arguments over :data:`DEFAULT_KWARGS` (``algo``, ``future_p`` and
+        ``buffer_size`` are the learner's)
+    :param n_envs: envs stepped together
+    :param device: torch device
+    :param seed: seed of the model and the replay's sampler
+    """
+
+    def __init__(self, observation_space: spaces.Box, action_space: spaces.Box, position: Callable, state: Callable,
+                 goal_position: Callable[[Hashable, np.ndarray], np.ndarray], distance_threshold: float,
+                 alpha: float = 0.5, subpolicy_kwargs: Optional[dict[str, Any]] = None, n_envs: int = 1,
+                 device: Any = "auto", seed: Optional[int] = None) -> None:
+        if not isinstance(action_space, spaces.Box):
+            raise ValueError(f"GoalConditionedLearner needs a Box action space, got {action_space}")
+        kwargs = {**DEFAULT_KWARGS, **(subpolicy_kwargs or {})}
+        algo = kwargs.pop("algo")
+        if algo not in ALGOS:
+            raise ValueError(f"subpolicy_kwargs['algo'] must be one of {sorted(ALGOS)}, got {algo!r}")
+        self.future_p, self.buffer_size = float(kwargs.pop("future_p")), int(kwargs.pop("buffer_size"))
+        self.gradient_steps = int(kwargs.pop("gradient_steps"))
+        self.position, self.state, self.goal_position = position, state, goal_position
+        self.distance_threshold, self.alpha, self.seed = float(distance_threshold), float(alpha), seed
+        sample = np.zeros((1, *observation_space.shape), np.float32)
+        state_dim = self.state(sample).shape[1]
+        box = lambda n: spaces.Box(-np.inf, np.inf, (n,), np.float32)  # noqa: E731
+        self.input_space = spaces.Dict(dict(observation=box(state_dim), achieved_goal=box(3), desired_goal=box(3)))
+        self.model = ALGOS[algo]("MultiInputPolicy", SpacesEnv(self.input_space, action_space), buffer_size=1,
+                                 device=device, seed=seed, **kwargs)
+        self.model.set_logger(Logger(folder=None, output_formats=[]))
+        self.model._current_progress_remaining = 1.0
+        self.model.replay_buffer = _Sampler(self)  # type: ignore[assignment]
+        self.action_space, self.obs_dim = action_space, int(observation_space.shape[0])
+        self.goal_keys: list[Hashable] = []
+        self.outcomes: list[deque] = []
+        self.num_steps = 0
+        self._rng = np.random.default_rng(seed)
+        self.set_n_envs(n_envs)
+
+    def __len__(self) -> int:
+        return len(self.goal_keys)
+
+    def set_n_envs(self, n_envs: int) -> None:
+        """A replay laid out for ``n_envs`` envs (empty: rows of another layout are not carried over)."""
+        self.n_envs = int(n_envs)
+        self.replay = HindsightReplay(self.obs_dim, int(np.prod(self.action_space.shape)), self.buffer_size,
+                                      self.n_envs, self.future_p, self.distance_threshold, self.alpha, self.seed)
+
+    def add(self, goal_key: Hashable) -> int:
+        """A new sub-goal: nothing to build, the model already reaches any place."""
+        self.goal_keys.append(goal_key)
+        self.outcomes.append(deque(maxlen=100))
+        return len(self.goal_keys) - 1
+
+    def inputs(self, obs: np.ndarray, goals: np.ndarray) -> dict[str, np.ndarray]:
+        """The model's dict input of a batch of flat observations and the places to reach."""
+        obs = np.asarray(obs, np.float32)
+        return dict(observation=self.state(obs).astype(np.float32), achieved_goal=self.position(obs).astype(np.float32),
+                    desired_goal=np.asarray(goals, np.float32))
+
+    def places(self, goals: np.ndarray, obs: np.ndarray) -> np.ndarray:
+        """The place each env's sub-goal asks for (the env's own target where it pursues none)."""
+        return np.stack([self.goal_position(self.goal_keys[int(g)] if g >= 0 else None, o) for g, o in zip(goals, obs)])
+
+    def act(self, goals: np.ndarray, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """One action per env towards its sub-goal's place: at random before ``learning_starts`` steps (unless
+        ``deterministic``), then the model's (its own exploration: SAC samples, TD3 / DDPG add their noise)."""
+        if not deterministic and self.num_steps < self.model.learning_starts:
+            low, high = self.action_space.low, self.action_space.high
+            return self._rng.uniform(low, high, size=(len(obs), *self.action_space.shape)).astype(np.float32)
+        actions, _ = self.model.predict(self.inputs(obs, self.places(goals, obs)), deterministic=deterministic)
+        if not deterministic and getattr(self.model, "action_noise", None) is not None:
+            actions = np.clip(actions + self.model.action_noise(), self.action_space.low, self.action_space.high)
+        return actions
+
+    def observe(self, obs: np.ndarray, actions: np.ndarray, next_obs: np.ndarray, keys: list, terminated: np.ndarray,
+                truncated: np.ndarray, gave_up: np.ndarray, acting: np.ndarray, intrinsic: np.ndarray) -> None:
+        """Every env's step into the replay, once, with the place its learner was sent to; then the model's
+        gradient steps (one per step of the envs by default), once ``learning_starts`` steps are stored."""
+        goals = self.places(acting, obs)
+        scaled = self.model.policy.scale_action(np.asarray(actions, np.float32))
+        self.replay.add(obs, next_obs, scaled, self.position(np.asarray(next_obs)), goals, intrinsic, terminated,
+                        np.asarray(terminated) | np.asarray(truncated))
+        self.num_steps += len(obs)
+        self.model.num_timesteps = self.num_steps
+        if self.replay.size() >= max(self.model.learning_starts, self.model.batch_size):
+            self.model.train(gradient_steps=self.gradient_steps, batch_size=self.model.batch_size)
+
+    def record_outcome(self, goal: int, success: bool) -> None:
+        self.outcomes[goal].append(bool(success))
+
+    def success_rate(self, goal: int) -> Optional[float]:
+        return float(np.mean(self.outcomes[goal])) if self.outcomes[goal] else None
+
+    def state_dict(self) -> dict[str, Any]:
+        model = self.model
+        optimizers = [model.actor.optimizer, model.critic.optimizer]
+        entropy = getattr(model, "ent_coef_optimizer", None)
+        return {"format": "sb3_hhp.GoalConditionedLearner", "goal_keys": list(self.goal_keys),
+                "policy": model.policy.state_dict(), "optimizers": [opt.state_dict() for opt in optimizers],
+                "log_ent_coef": None if entropy is None else model.log_ent_coef.detach().clone(),
+                "entropy_optimizer": None if entropy is None else entropy.state_dict(),
+                "num_steps": self.num_steps, "n_updates": model._n_updates,
+                "outcomes": [list(outcome) for outcome in self.outcomes]}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if not isinstance(state, dict) or state.get("format") != "sb3_hhp.GoalConditionedLearner":
+            raise ValueError("These sub-goal learners were not saved by GoalConditionedLearner: load the model with "
+                             "the subgoal_learner_kwargs kind it was trained with")
+        model = self.model
+        model.policy.load_state_dict(state["policy"])
+        for opt, saved in zip([model.actor.optimizer, model.critic.optimizer], state["optimizers"]):
+            opt.load_state_dict(saved)
+        if state["log_ent_coef"] is not None:
+            with th.no_grad():
+                model.log_ent_coef.copy_(state["log_ent_coef"])
+            model.ent_coef_optimizer.load_state_dict(state["entropy_optimizer"])
+        self.goal_keys = list(state["goal_keys"])
+        self.outcomes = [deque(outcome, maxlen=100) for outcome in state["outcomes"]]
+        self.num_steps, model._n_updates = int(state["num_steps"]), int(state["n_updates"])
+
+    def replay_state(self) -> dict[str, Any]:
+        return {"format": "sb3_hhp.HindsightReplay", **self.replay.state()}
+
+    def load_replay_state(self, state: Any, truncate_last_traj: bool = True) -> None:
+        """The replay of :meth:`replay_state`; ``truncate_last_traj``: the running episodes end there (training goes
+        on from fresh episodes, so no future place is drawn from the next one)."""
+        if not isinstance(state, dict) or state.get("format") != "sb3_hhp.HindsightReplay":
+            raise ValueError("the file holds no replay of a goal-conditioned learner")
+        self.replay.load_state({key: value for key, value in state.items() if key != "format"})
+        if truncate_last_traj and self.replay.count:
+            last = (self.replay.count - 1) % self.replay.steps
+            running = self.replay.episode_end == -1
+            self.replay.episode_end[running] = self.replay.step_id[last, 0]
+            self.replay.episode_start[:] = self.replay.count
