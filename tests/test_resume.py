@@ -15,7 +15,8 @@ from stable_baselines3.common.save_util import save_to_pkl
 
 from sb3_hhp import HhP
 from sb3_hhp.goals import wrap_env
-from sb3_hhp.train import eval_seeds, resume_seed
+from sb3_hhp.zoo.checkpoints import resume_seed
+from sb3_hhp.zoo.evaluation import eval_seeds
 
 ENV = "MiniGrid-DoorKey-5x5-v0"
 
@@ -174,7 +175,7 @@ def test_a_checkpoint_the_disk_cannot_hold_is_skipped_and_training_goes_on(train
     not even begun. Nothing already saved is lost."""
     import shutil
 
-    from sb3_hhp.train import checkpoint_callback_class, read_checkpoint
+    from sb3_hhp.zoo.checkpoints import checkpoint_callback_class, read_checkpoint
 
     model, _ = trained
     callback = checkpoint_callback_class()(save_freq=100, save_path=str(tmp_path))
