@@ -31,7 +31,7 @@ class RNDSnapshot:
 
     :param predictor: frozen deep copy of the predictor network f_hat(. | theta_old)
     :param obs_rms: copy of the observation normalisation statistics at that time
-    :param num_steps: value of :attr:`RND.num_steps` when the snapshot was taken (environment steps)
+    :param num_steps: value of ``RND.num_steps`` when the snapshot was taken (environment steps)
     """
 
     predictor: nn.Module

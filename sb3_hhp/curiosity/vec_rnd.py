@@ -30,11 +30,11 @@ INTRINSIC_KEY = "intrinsic_reward"
 class VecRNDReward(VecEnvWrapper):
     """
     Adds curiosity to the reward of a VecEnv: ``r_t = r^e_t + intrinsic_coef * r^i_t`` with
-    ``r^i_t = ||f_hat(s_{t+1}) - f(s_{t+1})||^2 / std(R^i)`` the RND intrinsic reward (eq. 7, :class:`RND`),
+    ``r^i_t = ||f_hat(s_{t+1}) - f(s_{t+1})||^2 / std(R^i)`` the RND intrinsic reward (eq. 7, :class:`~sb3_hhp.curiosity.rnd.RND`),
     computed on the next observation ``s_{t+1}``: the observation the step returned, or, for an env whose
     episode ended at that step, ``infos[i]["terminal_observation"]`` (the returned one is already the next
     episode's first). The batch of ``n_envs`` next observations enters the RND's forward filter as
-    consecutive rows, as :meth:`RND.intrinsic_reward` reads them.
+    consecutive rows, as :meth:`~sb3_hhp.curiosity.rnd.RND.intrinsic_reward` reads them.
 
     Every ``update_every`` calls to ``step`` the predictor is trained for ``n_epochs`` passes on the
     ``update_every * n_envs`` next observations seen since the last update (their statistics join the
@@ -48,7 +48,7 @@ class VecRNDReward(VecEnvWrapper):
     :param venv: the VecEnv; its observation space must be a ``gymnasium.spaces.Box`` (vectors or images)
     :param intrinsic_coef: weight of the intrinsic reward (>= 0); 0 leaves the reward unchanged while the
         predictor still learns
-    :param rnd_kwargs: keyword arguments of :class:`RND` (``embedding_dim``, ``hidden_dim``, ``learning_rate``,
+    :param rnd_kwargs: keyword arguments of :class:`~sb3_hhp.curiosity.rnd.RND` (``embedding_dim``, ``hidden_dim``, ``learning_rate``,
         ``gamma``, ``obs_clip``, ``batch_size``, ``device``, ``seed``, ...)
     :param update_every: VecEnv steps between two predictor updates (>= 1)
     :param n_epochs: passes over the buffered observations per update (>= 1)
@@ -103,7 +103,7 @@ class VecRNDReward(VecEnvWrapper):
     def state_dict(self) -> dict[str, Any]:
         """
         Everything needed to go on exactly where this wrapper stands (a checkpointed run resumed): the RND's state
-        (:meth:`RND.state_dict`), the next observations buffered for the next predictor update (as tensors), the
+        (:meth:`~sb3_hhp.curiosity.rnd.RND.state_dict`), the next observations buffered for the next predictor update (as tensors), the
         update count and the last loss. Tensors and plain Python data: written with ``th.save``, read back with
         ``th.load(..., weights_only=True)``.
 

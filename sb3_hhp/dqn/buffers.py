@@ -72,7 +72,7 @@ class PrioritizedReplayBuffer(ReplayBuffer):
     :param off_policy_lower_bound: Also sample, for every transition, the n-step return along the behaviour
         that was stored after it, off-policy transitions included (same stops otherwise), as ``behaviour_*``
         fields. The return of any behaviour is a lower bound on the optimal value, so
-        :class:`~sb3_hhp.dqn.DoubleDQN` raises its target to it where it is higher ("optimality tightening",
+        :class:`~sb3_hhp.dqn.dqn.DoubleDQN` raises its target to it where it is higher ("optimality tightening",
         He et al., 2017): relabelled experience then carries a reward back n steps at a time, as own n-step
         returns do, without the bias of an n-step target on another policy's actions. Needs ``n_steps > 1``.
     """

@@ -4,7 +4,7 @@ The paper trains both levels of the hierarchy with "DDQN with prioritized experi
 (alpha = 0.6, beta = 0.4)" (section 5.1). :class:`DoubleDQN` changes only SB3's ``DQN.train`` and
 adds the three hooks the hierarchical algorithm needs:
 
-- :meth:`DoubleDQN._rewards`: the reward column used in the TD target (a subclass may recompute
+- ``DoubleDQN._rewards``: the reward column used in the TD target (a subclass may recompute
   rewards at sample time, e.g. the meta-reward of eq. 3 from the current preference predictor);
 - :attr:`DoubleDQN.valid_actions`: a boolean mask over the discrete actions, honoured by the TD
   target, by greedy action selection and by epsilon-greedy exploration; :meth:`DoubleDQN.action_mask`
@@ -298,6 +298,8 @@ class DoubleDQN(DQN):
     # --------------------------------------------------------------- training
 
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+        """``gradient_steps`` Double DQN updates on prioritized batches: the online network picks the next action, the
+        target network values it (:func:`double_q_target`), and the batch's priorities become its TD errors."""
         # Switch to train mode (this affects batch norm / dropout)
         self.policy.set_training_mode(True)
         # Update learning rate according to schedule

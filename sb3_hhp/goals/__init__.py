@@ -24,8 +24,8 @@ NAMED_GOAL_SPACES = {
 
 
 def wrap_env(env: gym.Env) -> gym.Env:
-    """Give a raw env the observation its goal space reads (MiniGrid: :class:`MiniGridEgocentricObs`; Fetch:
-    :class:`FetchFlatObs`)."""
+    """Give a raw env the observation its goal space reads (MiniGrid: :class:`~sb3_hhp.goals.minigrid.MiniGridEgocentricObs`; Fetch:
+    :class:`~sb3_hhp.goals.fetch.FetchFlatObs`)."""
     if find_minigrid(env) is not None and not MiniGridGoalSpace.supports(env):
         return MiniGridEgocentricObs(env)
     if find_fetch(env) is not None and isinstance(env.observation_space, gym.spaces.Dict):
@@ -49,9 +49,9 @@ def make_goal_space(goal_space: Union[str, GoalSpace], env: gym.Env) -> GoalSpac
     if not candidates or not candidates[0].supports(env):
         raise ValueError(
             f"No goal space supports this env (observation space {env.observation_space}). "
-            "HhP supports MiniGrid tasks wrapped with sb3_hhp.goals.MiniGridEgocentricObs "
+            "HhP supports MiniGrid tasks wrapped with sb3_hhp.goals.minigrid.MiniGridEgocentricObs "
             "(sb3_hhp.goals.wrap_env(env) does it), gymnasium-robotics Fetch tasks wrapped with "
-            "sb3_hhp.goals.FetchFlatObs (wrap_env does it too) and fixed-layout envs that observe uint8 images of at least "
+            "sb3_hhp.goals.fetch.FetchFlatObs (wrap_env does it too) and fixed-layout envs that observe uint8 images of at least "
             "8x8 pixels (goal_space='image'; Atari: stable_baselines3.common.atari_wrappers.AtariWrapper); "
             "pass goal_space= a GoalSpace for other envs."
         )

@@ -33,7 +33,7 @@ class GoalSpace(ABC):
         """The sub-goal key of an observation (the situation it shows)."""
 
     def terminal_key(self, obs: np.ndarray, reward: float, terminated: bool) -> Hashable:
-        """The key reached by a transition: :data:`SUCCESS_KEY` when the task was solved, else ``key(obs)``."""
+        """The key reached by a transition: :data:`~sb3_hhp.goals.base.SUCCESS_KEY` when the task was solved, else ``key(obs)``."""
         if terminated and reward > 0:
             return SUCCESS_KEY
         return self.key(obs)

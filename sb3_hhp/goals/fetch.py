@@ -110,7 +110,7 @@ class FetchGoalSpace(GoalSpace):
         return distance <= self.distance_threshold
 
     def terminal_key(self, obs: np.ndarray, reward: float, terminated: bool) -> Hashable:
-        """:data:`SUCCESS_KEY` where the task is solved (a Fetch episode never terminates: it is solved where the
+        """:data:`~sb3_hhp.goals.base.SUCCESS_KEY` where the task is solved (a Fetch episode never terminates: it is solved where the
         achieved position is at the target), else the place's key."""
         return SUCCESS_KEY if bool(self.solved(obs)) else self.key(obs)
 
@@ -121,7 +121,7 @@ class FetchGoalSpace(GoalSpace):
 
     def goal_position(self, key: Optional[Hashable], obs: np.ndarray) -> np.ndarray:
         """The place (metres) a sub-goal asks for in state ``obs``: its cell's centre; the state's target for the
-        task's own goal (:data:`SUCCESS_KEY`) or for none (``key`` None)."""
+        task's own goal (:data:`~sb3_hhp.goals.base.SUCCESS_KEY`) or for none (``key`` None)."""
         if key is None or key == SUCCESS_KEY:
             return self.desired_position(obs)
         return self.cell_center(key)
@@ -138,7 +138,7 @@ class FetchGoalSpace(GoalSpace):
 
     def distance(self, key: Hashable, other: Hashable) -> float:
         """Distance in metres between the centres of two keys' cells (infinite between a place and
-        :data:`SUCCESS_KEY`, 0 between two)."""
+        :data:`~sb3_hhp.goals.base.SUCCESS_KEY`, 0 between two)."""
         if key == SUCCESS_KEY or other == SUCCESS_KEY:
             return 0.0 if key == other else math.inf
         return self.cell_size * math.dist(key, other)  # centres are (key + 0.5) * cell_size: no arrays per step

@@ -68,6 +68,7 @@ DIM = 0.45
 
 #: the paper's MultiRoom task, which MiniGrid does not register: 12 rooms of at most 10x10 cells (a 25x25 grid,
 #: 240 steps)
+#: the id under which sb3_hhp registers the paper's MultiRoom task (12 rooms of up to 10 x 10)
 MULTIROOM_N12_S10 = "MiniGrid-MultiRoom-N12-S10-v0"
 
 
@@ -289,7 +290,7 @@ class MiniGridGoalSpace(GoalSpace):
                blocks: Optional[Callable[[], bool]] = None) -> Hashable:
         """The key of a state from the encodings of the carried object and of the one in front; ``count_open()``
         (how many doors of the grid are open) is called only where ``count_open_doors`` needs it, ``blocks()``
-        (whether the object in front blocks the way, :func:`blockers`) where ``mark_blockers`` does. :meth:`key`
+        (whether the object in front blocks the way, :func:`blockers`) where ``mark_blockers`` does. :meth:`~sb3_hhp.goals.base.GoalSpace.key`
         reads them from an observation, the scripted oracle from the grid its search changes."""
         state = int(front[2])
         if self.mark_blockers and front[0] in PICKABLE and blocks is not None and blocks():
@@ -308,7 +309,7 @@ class MiniGridGoalSpace(GoalSpace):
         object (the only one of its kind, and colour with ``use_color``, in both states) taken off its cell and put
         in the agent's. Usable only where carrying it changes nothing else: the agent's hands empty before and after,
         and a turn, a step or ``done`` (a pick-up, a drop or a toggle would go otherwise), but not a step into the
-        object itself (it blocks the way while on the floor). See :meth:`GoalSpace.carried_counterfactual`."""
+        object itself (it blocks the way while on the floor). See :meth:`~sb3_hhp.goals.base.GoalSpace.carried_counterfactual`."""
         if goal_key == SUCCESS_KEY or not isinstance(goal_key, tuple) or goal_key[0] in (EMPTY, 0):
             return None  # the task's own goal or empty hands: nothing to carry
         kind, colour = goal_key[0], (goal_key[1] if self.use_color else None)
@@ -529,7 +530,7 @@ class MiniGridGoalSpace(GoalSpace):
         is opened or closed) and, when the sub-goal carries something the agent does not carry yet, the
         objects of that kind to pick up. Walls and empty cells are nobody's target: an empty mask.
 
-        :param state: privileged facts of the state (:meth:`privileged`): ``grid``, ``carrying``
+        :param state: privileged facts of the state (:meth:`~sb3_hhp.goals.base.GoalSpace.privileged`): ``grid``, ``carrying``
         :param key: the sub-goal key
         """
         codes = np.asarray(state["grid"], dtype=np.int64)

@@ -1,4 +1,4 @@
-"""How HhP acts: the meta-controller's choice of sub-goals and :meth:`~sb3_hhp.HhP.predict`'s primitive actions.
+"""How HhP acts: the meta-controller's choice of sub-goals and :meth:`~sb3_hhp.hhp.acting.HierarchicalActing.predict`'s primitive actions.
 
 ``predict`` carries each env's sub-goal and its step count in SB3's ``state`` (as RecurrentPPO carries LSTM states),
 so SB3's ``evaluate_policy`` works unchanged; a new sub-goal is chosen at an episode start, when the current one is
@@ -28,7 +28,7 @@ def observation_digests(batch: np.ndarray) -> list[bytes]:
 
 
 class HierarchicalActing:
-    """The acting of :class:`~sb3_hhp.HhP` (a mixin: it reads the model's meta-controller, sub-goals and learners)."""
+    """The acting of :class:`~sb3_hhp.hhp.hhp.HhP` (a mixin: it reads the model's meta-controller, sub-goals and learners)."""
 
     #: states whose key and reach (:meth:`action_mask`) are kept; the cache is emptied when a batch would overfill it
     present_cache_size = 100_000

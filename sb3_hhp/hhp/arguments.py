@@ -1,6 +1,6 @@
 """HhP's grouped arguments: one ``*_kwargs`` dict per component, each over its defaults, validated once.
 
-:class:`~sb3_hhp.HhP` takes what the paper names at the top level (the oracle, the budget, beta of eq. 3, alpha of
+:class:`~sb3_hhp.hhp.hhp.HhP` takes what the paper names at the top level (the oracle, the budget, beta of eq. 3, alpha of
 eq. 6, the goal space, ``max_subgoal_steps``), the meta-controller's SB3 DQN arguments (``learning_rate``,
 ``buffer_size``, ...), and one dict per component: ``query_kwargs`` (who is asked and when), ``predictor_kwargs``,
 ``discovery_kwargs`` (CSD), ``subgoal_learner_kwargs`` (how the sub-goal learners learn; their SB3 arguments are

@@ -16,7 +16,7 @@ from sb3_hhp.preferences.rewards import meta_reward
 
 
 class PreferenceBonus:
-    """The preference bonus of :class:`~sb3_hhp.HhP`'s choices (a mixin: it reads the model's predictor, sub-goals
+    """The preference bonus of :class:`~sb3_hhp.hhp.hhp.HhP`'s choices (a mixin: it reads the model's predictor, sub-goals
     and meta replay)."""
 
     def predictor_inputs(self, observations: np.ndarray) -> np.ndarray:
@@ -111,7 +111,7 @@ class PreferenceBonus:
 
     @property
     def success_goal(self) -> Optional[int]:
-        """The index of the task's own goal among the sub-goals (:data:`~sb3_hhp.goals.SUCCESS_KEY`), None before
+        """The index of the task's own goal among the sub-goals (:data:`~sb3_hhp.goals.base.SUCCESS_KEY`), None before
         it is found."""
         keys = self.subgoal_set.keys
         return keys.index(SUCCESS_KEY) if SUCCESS_KEY in keys else None

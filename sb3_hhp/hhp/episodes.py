@@ -39,7 +39,7 @@ def question_signature(state_id: str, goal1_key: Hashable, goal2_key: Hashable) 
 
 
 class BetweenEpisodes:
-    """The between-episode steps of :class:`~sb3_hhp.HhP` (a mixin: they read the model's components)."""
+    """The between-episode steps of :class:`~sb3_hhp.hhp.hhp.HhP` (a mixin: they read the model's components)."""
 
     #: episodes between two writes of the sub-goal gallery into the store (when it is a file)
     gallery_every = 10

@@ -1,11 +1,11 @@
-"""HhP: hierarchical learning from human preferences and curiosity (Algorithm 1).
+"""HhP: hierarchical learning from human preferences and curiosity (Algorithm 1), shaped as SB3's ``dqn.py``.
 
-The meta-controller is a Double DQN with prioritized replay (this class) acting on a
-:class:`~sb3_hhp.hierarchy.env.HierarchicalEnv`: each of its actions is a sub-goal, run by that
-sub-goal's subpolicy until ``terminal(s, g)``. ``total_timesteps`` counts primitive env steps.
-Between episodes, SB3 callbacks (:mod:`sb3_hhp.callbacks`) ask the oracle about the least
-confident choices (lines 24-27), discover sub-goals (line 29) and update the curiosity model (line
-35); then ``train`` runs N_opt meta-controller updates (lines 30-34) whose reward is eq. 3.
+:class:`HhP` is the meta-controller, a Double DQN with prioritized replay over the sub-goals: ``__init__`` stores
+the settings, ``_setup_model`` builds the components, ``collect_rollouts`` runs the option loop
+(:class:`~sb3_hhp.hierarchy.options.OptionRunner`) and the work between episodes
+(:class:`~sb3_hhp.hhp.episodes.BetweenEpisodes`: questions, CSD, RND), ``train`` runs N_opt updates whose reward is
+eq. 3 (:class:`~sb3_hhp.hhp.bonus.PreferenceBonus`), ``predict`` acts (:class:`~sb3_hhp.hhp.acting.HierarchicalActing`),
+and save / load keep every component in one zip. ``total_timesteps`` counts primitive env steps.
 """
 
 import io
@@ -132,22 +132,22 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
     sub-goal learners run it until ``terminal(s, g)`` (:class:`~sb3_hhp.hierarchy.options.OptionRunner`); between
     episodes the oracle is asked about the least confident choices, CSD adds sub-goals and RND is updated
     (:class:`~sb3_hhp.hhp.episodes.BetweenEpisodes`); then N_opt meta-controller updates whose reward is eq. 3.
-    ``total_timesteps`` counts primitive env steps, :meth:`predict` returns primitive actions, and
-    :meth:`get_env` is the VecEnv of primitive envs, as SB3 users expect. The same semi-MDP is offered to any SB3
-    algorithm by :class:`~sb3_hhp.hierarchy.HierarchicalEnv`.
+    ``total_timesteps`` counts primitive env steps, :meth:`~sb3_hhp.hhp.acting.HierarchicalActing.predict` returns primitive actions, and
+    :meth:`~sb3_hhp.hhp.hhp.HhP.get_env` is the VecEnv of primitive envs, as SB3 users expect. The same semi-MDP is offered to any SB3
+    algorithm by :class:`~sb3_hhp.hierarchy.semi_mdp.HierarchicalEnv`.
 
     :param policy: the meta-controller's policy ("MlpPolicy", "CnnPolicy", "MultiInputPolicy" or a class)
     :param env: the task: a gym env or an env id (wrapped with :func:`~sb3_hhp.goals.wrap_env` and a Monitor), or a
         VecEnv of any number of envs, each already wrapped
-    :param oracle: who answers preference queries: an :class:`~sb3_hhp.oracles.Oracle`, a name of
-        :data:`~sb3_hhp.oracles.ORACLE_NAMES` (built with ``query_kwargs["oracle_kwargs"]``), or None
+    :param oracle: who answers preference queries: an :class:`~sb3_hhp.oracles.base.Oracle`, a name of
+        :data:`~sb3_hhp.oracles.registry.ORACLE_NAMES` (built with ``query_kwargs["oracle_kwargs"]``), or None
     :param query_budget: total number of questions over training (>= 0); 0 with no preference file gives the paper's
         "Cur" ablation (no labels, so the meta-controller's reward is R_e alone)
     :param beta: weight of the extrinsic return in eq. 3, in [0, 1]
     :param alpha: weight of the intrinsic reward in eq. 6 (>= 0)
     :param use_curiosity: False gives the paper's "Pref" ablation (no RND at all: no intrinsic reward, and CSD ranks
         no novelty progress)
-    :param goal_space: "auto", a registered name or a :class:`~sb3_hhp.goals.GoalSpace`
+    :param goal_space: "auto", a registered name or a :class:`~sb3_hhp.goals.base.GoalSpace`
     :param max_subgoal_steps: primitive steps after which a sub-goal gives up (``terminal(s, g)``, design decisions)
     :param preference_db: path of the SQLite preference store (None: in memory); the labeling page reads it
     :param query_kwargs: who is asked and when, over :data:`~sb3_hhp.hhp.arguments.QUERY_DEFAULTS`
@@ -158,7 +158,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
     :param subgoal_learner_kwargs: how the sub-goal learners learn, over
         :data:`~sb3_hhp.hhp.arguments.SUBGOAL_LEARNER_DEFAULTS`
     :param subpolicy_kwargs: the sub-goal learners' SB3 arguments (discrete actions: DQN's names, over
-        :data:`~sb3_hhp.hierarchy.learners.DEFAULT_SUBPOLICY_KWARGS`; ``buffer_size`` is the shared replay's, in
+        :data:`~sb3_hhp.hierarchy.learner_kwargs.DEFAULT_SUBPOLICY_KWARGS`; ``buffer_size`` is the shared replay's, in
         primitive transitions; continuous actions: each sub-goal's SB3 DDPG)
     :param rnd_kwargs: arguments of :class:`~sb3_hhp.curiosity.rnd.RND` (memory_size M, refresh_interval T, ...)
     :param meta_kwargs: the meta-controller beyond SB3's DQN arguments, over
@@ -604,7 +604,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
 
     def get_env(self) -> Optional[VecEnv]:
-        """The primitive envs, as a VecEnv whose actions are what :meth:`predict` returns (SB3's README loop and
+        """The primitive envs, as a VecEnv whose actions are what :meth:`~sb3_hhp.hhp.acting.HierarchicalActing.predict` returns (SB3's README loop and
         ``evaluate_policy(model, model.get_env())`` work); None without an env."""
         if self.options is None:
             return None

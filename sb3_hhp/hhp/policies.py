@@ -34,7 +34,7 @@ class GridCNN(BaseFeaturesExtractor):
 
 
 class GoalSpaceFeatures(BaseFeaturesExtractor):
-    """Features = :meth:`GoalSpace.features <sb3_hhp.goals.GoalSpace.features>` of the observations, a fixed
+    """Features = :meth:`GoalSpace.features <sb3_hhp.goals.base.GoalSpace.features>` of the observations, a fixed
     (not learnt) description; the Q-network's ``net_arch`` layers learn on top of it.
 
     :param observation_space: the primitive observation space

@@ -181,7 +181,7 @@ class Indicators:
 
     Learner ``t``'s first layer is read as rows of a table ``(R, H)``: input ``i``'s weights in row ``starts[t] + i``
     and zeros in row ``starts[t] + size``, where the padding points (the stacked learners keep their first layers so,
-    :meth:`~sb3_hhp.hierarchy.learners.StackedDQN._layout`)."""
+    ``StackedDQN._layout``)."""
 
     def __init__(self, places: th.Tensor, size: int) -> None:
         self.places, self.size = places, size

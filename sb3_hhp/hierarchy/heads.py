@@ -22,7 +22,7 @@ from sb3_hhp.hierarchy.learners import StackedDQN
 class GoalHeadsQNetwork(th.nn.Module):
     """``Q(s, g, a)`` for every sub-goal ``g``: SB3's features extractor and MLP trunk, shared, then one linear
     head per sub-goal (as h-DQN's controller is one network for every goal). Heads are stored stacked,
-    ``capacity`` of them; :meth:`grow` makes room for more.
+    ``capacity`` of them; ``grow`` makes room for more.
 
     :param features_extractor: SB3's features extractor (FlattenExtractor, NatureCNN, ...)
     :param net_arch: hidden layer sizes of the trunk
@@ -83,7 +83,7 @@ class SharedHeadsDQN(StackedDQN):
     sub-goals K, so the cost of a primitive step barely grows with K. A transition's priority is its largest
     absolute TD error over the sub-goals. ``train_freq``, ``gradient_steps`` and ``target_update_interval``
     count primitive steps (of all envs); ``train_shared`` has no effect (every head learns at every update).
-    Arguments as :class:`StackedDQN`.
+    Arguments as :class:`~sb3_hhp.hierarchy.learners.StackedDQN`.
     """
 
     _shared_priorities = True

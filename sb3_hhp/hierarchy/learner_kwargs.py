@@ -48,7 +48,7 @@ def default_subpolicy_kwargs() -> dict[str, Any]:
 
 def checked_subpolicy_kwargs(subpolicy_kwargs: Optional[dict[str, Any]]) -> dict[str, Any]:
     """``subpolicy_kwargs`` (SB3 DQN's names) over :func:`default_subpolicy_kwargs`, checked: names the learners take
-    (:data:`USED`; :data:`IGNORED` accepted), a constant learning rate and whole step counts."""
+    (:data:`USED`; ``IGNORED`` accepted), a constant learning rate and whole step counts."""
     unknown = set(subpolicy_kwargs or {}) - USED - IGNORED
     if unknown:
         raise ValueError(f"Unknown subpolicy_kwargs {sorted(unknown)}: the sub-goal learners take {sorted(USED)}")

@@ -83,7 +83,7 @@ class StackedDQN:
         before the step, then applied round after round, each an Adam step of its own. A later round's gradient is
         thus one update old. False: one call per round, each from the parameters the round before left
     :param action_mask: the primitive actions a learner may take in each state of a batch (the goal space's
-        :meth:`~sb3_hhp.goals.GoalSpace.action_mask`), applied to acting, exploring and the max of the targets;
+        :meth:`~sb3_hhp.goals.base.GoalSpace.action_mask`), applied to acting, exploring and the max of the targets;
         None: every action
     :param view: the learners read only the central ``view`` x ``view`` cells of an ``(H, W, C)`` observation (on
         MiniGrid's egocentric canvas: the cells around the agent), odd; ``"inner"``: every cell but the outermost ring
@@ -95,7 +95,7 @@ class StackedDQN:
         in which direction a far object lies; odd, >= 3; MlpPolicy only. None: no overview
     :param carry_relabel: the share of a drawn batch, for a sub-goal that carries an object, replaced where possible
         by steps taken with empty hands as they would have gone carrying it (``counterfactual``, the goal space's
-        :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`), as one-step returns; 0: none
+        :meth:`~sb3_hhp.goals.base.GoalSpace.carried_counterfactual`), as one-step returns; 0: none
     :param one_hot: the learners read each channel ``c`` of ``(H, W, C)`` uint8 codes (after ``view``) as one-hot
         indicators of the codes ``one_hot[c]`` (a count n: codes 0 to n - 1; a list: those codes; 0 or ``[]``: the
         channel left out) instead of its code as a number; MiniGrid's canvas: ``[11, 6, 3]`` (every object, colour and
@@ -500,7 +500,7 @@ class StackedDQN:
             avoid: Optional[np.ndarray] = None) -> np.ndarray:
         """One primitive action per env: sub-goal ``goals[i]``'s learner at ``obs[i]``, epsilon-greedy unless
         ``deterministic``; ``avoid`` ``(n, A)``: actions the greedy choice passes over where another allowed action is
-        left (the policy breaking a cycle, :meth:`HhP.predict`)."""
+        left (the policy breaking a cycle, :meth:`~sb3_hhp.hhp.acting.HierarchicalActing.predict`)."""
         q = self.q_values(goals, obs)
         mask = self.allowed_actions(obs)
         if mask is not None:
@@ -726,7 +726,7 @@ class StackedDQN:
         }
 
     def replay_state(self) -> dict[str, Any]:
-        """The shared replay's stored transitions, priorities and sub-goal keys, for a file (:meth:`HhP.save_replay_buffer`)."""
+        """The shared replay's stored transitions, priorities and sub-goal keys, for a file (:meth:`~sb3_hhp.hhp.hhp.HhP.save_replay_buffer`)."""
         return {"format": "sb3_hhp.SharedReplay", "goal_keys": list(self.replay.goal_keys),
                 "replay": buffer_state(self.replay, self.replay.capacity, self.replay.size(),
                                        skip=("_achieved", *SharedReplay.DERIVED))}

@@ -6,7 +6,7 @@ reward comes for the whole batch (eq. 7), and every primitive transition is stor
 replay (lines 17-20), whose eq. 5 / 6 rewards are computed per sub-goal when a batch is drawn. An env's option
 ends at ``terminal(s, g)`` (line 22): the sub-goal is reached, the episode ends, or the sub-goal gives up after
 ``max_subgoal_steps`` primitive steps (:func:`option_terminal`, the one test that training and
-:meth:`~sb3_hhp.HhP.predict` share). The algorithm (:meth:`~sb3_hhp.HhP.collect_rollouts`) drives the runner:
+:meth:`~sb3_hhp.hhp.acting.HierarchicalActing.predict` share). The algorithm (:meth:`~sb3_hhp.hhp.hhp.HhP.collect_rollouts`) drives the runner:
 it chooses the next sub-goal of every env whose option ended in one batched forward, stores the choices'
 transitions in its replay and does the between-episode work on each finished episode's
 :class:`EpisodeTrace`. The sub-goal set G (:class:`SubgoalSet`) is the model's state; the runner reads it.
@@ -160,12 +160,12 @@ class OptionRunner:
     :param goal_space: the domain's goal space
     :param subgoals: the sub-goal set G (the model's, read here)
     :param learners: the sub-goal learners (:class:`~sb3_hhp.hierarchy.learners.StackedDQN`,
-        :class:`~sb3_hhp.hierarchy.learners.SharedHeadsDQN` or :class:`~sb3_hhp.hierarchy.subpolicies.PerGoalLearners`)
+        :class:`~sb3_hhp.hierarchy.heads.SharedHeadsDQN` or :class:`~sb3_hhp.hierarchy.subpolicies.PerGoalLearners`)
     :param rnd: the global curiosity model (None: no curiosity, the "Pref" ablation)
     :param max_subgoal_steps: primitive steps after which a sub-goal gives up
     :param record_images: render s_t at each choice (people and the gallery need it)
     :param learn: store every transition in the learners' replay, curiosity, visits and the episodes' traces (False:
-        the learners only act, frozen, as in :class:`~sb3_hhp.hierarchy.HierarchicalEnv`)
+        the learners only act, frozen, as in :class:`~sb3_hhp.hierarchy.semi_mdp.HierarchicalEnv`)
     :param deterministic: the learners act greedily (else epsilon-greedy, or with their action noise)
     """
 
@@ -341,7 +341,7 @@ class SubgoalVecEnv(VecEnvWrapper):
 
 class PrimitiveVecEnv(VecEnvWrapper):
     """The model's primitive envs as SB3 users step them (``model.get_env()``): actions are primitive actions, as
-    :meth:`~sb3_hhp.HhP.predict` returns them, so SB3's README loop and ``evaluate_policy(model, model.get_env())``
+    :meth:`~sb3_hhp.hhp.acting.HierarchicalActing.predict` returns them, so SB3's README loop and ``evaluate_policy(model, model.get_env())``
     work. Stepping or resetting them marks the option runner as interrupted: the next ``learn`` starts from fresh
     episodes instead of training on observations that are no longer the envs'."""
 

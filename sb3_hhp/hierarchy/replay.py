@@ -149,7 +149,7 @@ class SharedReplay:
     :param capacity: transitions kept per env (the oldest are overwritten), ``>= 1``
     :param observation_space: the primitive observation space (stored in its own dtype: uint8 grids stay uint8)
     :param action_space: the primitive action space
-    :param achieved: ``done(s, g)`` from two sub-goal keys (the goal space's :meth:`~sb3_hhp.goals.GoalSpace.achieved`)
+    :param achieved: ``done(s, g)`` from two sub-goal keys (the goal space's :meth:`~sb3_hhp.goals.base.GoalSpace.achieved`)
     :param n_envs: number of env streams
     :param alpha: weight of the intrinsic reward in eq. 6
     :param gamma: discount of the n-step returns
@@ -161,7 +161,7 @@ class SharedReplay:
     :param priority_alpha, priority_beta, priority_eps: prioritized replay's alpha, beta and epsilon
     :param carry_relabel: the share of each drawn batch, for a sub-goal that carries an object, replaced where possible
         by steps taken with empty hands as they would have gone carrying it (``counterfactual``); one-step returns
-    :param counterfactual: the goal space's :meth:`~sb3_hhp.goals.GoalSpace.carried_counterfactual`
+    :param counterfactual: the goal space's :meth:`~sb3_hhp.goals.base.GoalSpace.carried_counterfactual`
     :param seed: seed of the draws
     """
 
@@ -407,7 +407,7 @@ class SharedReplay:
 
     def n_step_returns(self, rows: np.ndarray, cols: np.ndarray, goals: np.ndarray, own: bool = True,
                        behaviour: bool = False) -> tuple:
-        """:meth:`_n_step` for the own returns and (``behaviour``) the returns along the stored behaviour, from one
+        """``_n_step`` for the own returns and (``behaviour``) the returns along the stored behaviour, from one
         relabelling of the n transitions after each drawn one. :return: ``(own or None, behaviour or None)``."""
         steps = np.arange(self.n_steps)
         ahead = (rows[..., None] + np.arange(self.n_steps + 1)) % self.capacity  # (T, B, n + 1): n and the one after

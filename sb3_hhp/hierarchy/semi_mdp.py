@@ -67,7 +67,7 @@ class HierarchicalEnv(gym.Env):
 
     @classmethod
     def from_model(cls, model: Any, env: Union[gym.Env, str], deterministic: bool = False) -> "HierarchicalEnv":
-        """The semi-MDP over a trained :class:`~sb3_hhp.HhP` model's sub-goals and learners (as they are now: sub-goals
+        """The semi-MDP over a trained :class:`~sb3_hhp.hhp.hhp.HhP` model's sub-goals and learners (as they are now: sub-goals
         it finds later are not added), on ``env``, a fresh env of the same task."""
         return cls(env, model.goal_space, list(model.subgoals), model.subpolicies,
                    max_subgoal_steps=model.max_subgoal_steps, deterministic=deterministic)

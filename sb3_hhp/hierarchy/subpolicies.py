@@ -290,7 +290,7 @@ class PerGoalLearners:
         return {"format": "sb3_hhp.PerGoalLearners", "goal_keys": list(self.goal_keys), "subpolicies": self.subpolicies.state_dict()}
 
     def replay_state(self) -> dict[str, Any]:
-        """Every subpolicy's SB3 replay buffer, the rows in use, for a file (:meth:`HhP.save_replay_buffer`)."""
+        """Every subpolicy's SB3 replay buffer, the rows in use, for a file (:meth:`~sb3_hhp.hhp.hhp.HhP.save_replay_buffer`)."""
         buffers = [policy.model.replay_buffer for policy in self.subpolicies.policies]
         return {"format": "sb3_hhp.PerGoalReplays", "goal_keys": list(self.goal_keys),
                 "replays": [buffer_state(buffer, buffer.buffer_size, buffer.buffer_size if buffer.full else buffer.pos)

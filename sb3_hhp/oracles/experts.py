@@ -19,7 +19,7 @@ class MultiExpertOracle(Oracle):
     the annotator name of the expert who gave it, so experts need distinct names.
 
     Experts may be synchronous or asynchronous: queries are submitted to the chosen expert and
-    :meth:`collect` gathers what every expert has answered.
+    :meth:`~sb3_hhp.oracles.base.Oracle.collect` gathers what every expert has answered.
 
     :param oracles: the experts (at least one, with distinct names)
     :param assignment: ``"query"`` (one random expert per query) or ``"run"`` (one expert for the run)
@@ -49,7 +49,7 @@ class MultiExpertOracle(Oracle):
         self.last_annotator: Optional[str] = None
 
     def choose_expert(self, query: Query) -> int:
-        """Index of the expert who answers ``query`` (recorded in :attr:`assigned`)."""
+        """Index of the expert who answers ``query`` (recorded in ``assigned``)."""
         if self.run_expert is not None:
             index = self.run_expert
         else:
@@ -58,7 +58,7 @@ class MultiExpertOracle(Oracle):
         return index
 
     def answer(self, query: Query) -> Label:
-        """Answer at once with the chosen expert; its name is left in :attr:`last_annotator`."""
+        """Answer at once with the chosen expert; its name is left in ``last_annotator``."""
         expert = self.oracles[self.choose_expert(query)]
         self.last_annotator = expert.name
         return Label.parse(expert.answer(query))

@@ -17,8 +17,8 @@ class NoisyOracle(Oracle):
     uniformly at random. ``INCOMPARABLE`` ("can't tell") is never corrupted: it carries no preference to
     get wrong, and it is never trained on anyway.
 
-    Works for synchronous and asynchronous inner oracles alike: :meth:`submit`, :meth:`collect`,
-    :meth:`pending` and :meth:`close` are passed through, and answers are corrupted as they come out.
+    Works for synchronous and asynchronous inner oracles alike: :meth:`~sb3_hhp.oracles.base.Oracle.submit`, :meth:`~sb3_hhp.oracles.base.Oracle.collect`,
+    :meth:`~sb3_hhp.oracles.base.Oracle.pending` and :meth:`~sb3_hhp.oracles.base.Oracle.close` are passed through, and answers are corrupted as they come out.
 
     :param oracle: the oracle whose answers are corrupted
     :param rho: probability in [0, 1] that an answer is wrong

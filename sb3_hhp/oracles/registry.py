@@ -7,6 +7,7 @@ from gymnasium import spaces
 from sb3_hhp.goals.base import GoalSpace
 from sb3_hhp.oracles.base import Oracle
 
+#: the names :func:`make_oracle` builds an oracle from
 ORACLE_NAMES = ("scripted", "noisy-scripted", "synthetic", "web", "terminal", "none")
 
 
@@ -20,7 +21,7 @@ def make_oracle(
 ) -> Optional[Oracle]:
     """Build the oracle called ``name`` for a goal space.
 
-    :param name: one of :data:`ORACLE_NAMES`
+    :param name: one of :data:`~sb3_hhp.oracles.registry.ORACLE_NAMES`
     :param goal_space: the goal space of the task (decides which scripted oracle applies)
     :param observation_space: observations the synthetic oracle's network reads
     :param store: the preference store (the web oracle's queue)

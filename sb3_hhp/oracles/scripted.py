@@ -37,7 +37,7 @@ def plan_keys(
     max_seconds: Optional[float] = None, weight: float = 1.0, move_boxes: bool = False,
 ) -> Optional[list[Hashable]]:
     """Sub-goal keys after each action of a shortest plan from the state described by ``info``
-    (as written by :meth:`MiniGridGoalSpace.privileged`) to success; the last key is ``SUCCESS_KEY``.
+    (as written by :meth:`~sb3_hhp.goals.base.GoalSpace.privileged`) to success; the last key is ``SUCCESS_KEY``.
     :func:`plan_steps` with the keys alone (same arguments)."""
     steps = plan_steps(info, goal_space, max_nodes=max_nodes, max_seconds=max_seconds, weight=weight,
                        move_boxes=move_boxes)
@@ -49,7 +49,7 @@ def plan_steps(
     max_seconds: Optional[float] = None, weight: float = 1.0, move_boxes: bool = False,
 ) -> Optional[list[tuple[Hashable, bool]]]:
     """The sub-goal key after each action of a shortest plan from the state described by ``info``
-    (as written by :meth:`MiniGridGoalSpace.privileged`) to success, each with whether the plan *acts* there: the
+    (as written by :meth:`~sb3_hhp.goals.base.GoalSpace.privileged`) to success, each with whether the plan *acts* there: the
     action that led to it or the next one picks up, drops, opens a door or a box, or ends the task, rather than
     turns or walks on. The last key is ``SUCCESS_KEY``.
 
@@ -229,7 +229,7 @@ class MiniGridScriptedOracle(Oracle):
     of an optimal plan from the query's state (see the module docstring).
 
     Each query's ``info`` must hold ``state`` (the privileged facts of the state, from
-    :meth:`MiniGridGoalSpace.privileged`) and ``goal1_key`` / ``goal2_key``.
+    :meth:`~sb3_hhp.goals.base.GoalSpace.privileged`) and ``goal1_key`` / ``goal2_key``.
 
     :param use_color: must match the goal space's ``use_color``
     :param count_open_doors: must match the goal space's ``count_open_doors``

@@ -28,7 +28,7 @@ class SyntheticOracle(OwnRandomState, Oracle):
     :meth:`observe` stores ``(s, g, R)`` triples in a FIFO buffer (``R``: the undiscounted return the
     agent obtained from ``s`` while aiming for ``g``); :meth:`train` fits the network
     ``V(s, g) ~ E[R | s, g]`` by mean squared error (call it after each episode: the paper runs 4
-    epochs on a 500K buffer). :meth:`answer` compares ``V(s, g1)`` and ``V(s, g2)`` with dropout off.
+    epochs on a 500K buffer). :meth:`~sb3_hhp.oracles.base.Oracle.answer` compares ``V(s, g1)`` and ``V(s, g2)`` with dropout off.
 
     The network is :class:`~sb3_hhp.preferences.predictor.PreferenceNetwork` (same architecture and
     hyperparameters as the preference predictor) with a ReLU output, as in the paper, so the

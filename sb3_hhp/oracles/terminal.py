@@ -109,22 +109,22 @@ def ansi_preview(
 class TerminalOracle(Oracle):
     """Ask a person at a terminal, one query at a time, while training goes on.
 
-    :meth:`submit` only enqueues. A daemon thread shows each query in turn: it writes the state and
+    :meth:`~sb3_hhp.oracles.base.Oracle.submit` only enqueues. A daemon thread shows each query in turn: it writes the state and
     the two sub-goal images as PNG files into ``image_dir`` and prints their paths, prints a small
     colour preview of the three images side by side, and reads one line: ``1`` or ``left`` prefers
     the first sub-goal, ``2`` or ``right`` the second, ``=`` says both are equally good, ``x`` "can't
-    tell" (INCOMPARABLE). Anything else re-prompts. :meth:`collect` returns the answers given so far.
+    tell" (INCOMPARABLE). Anything else re-prompts. :meth:`~sb3_hhp.oracles.base.Oracle.collect` returns the answers given so far.
 
     With ``reply_window_s`` set, a query left unanswered that long after it was shown is recorded as
     INCOMPARABLE (the paper's people had 5 seconds), and lines typed before a query appeared are not
     taken as its answer. Without it, the person takes as long as needed and lines are read in order
     (so a file of answers can be piped in). When the input ends, no more queries are shown: those left
-    stay counted by :meth:`pending`, and :attr:`input_closed` becomes True.
+    stay counted by :meth:`~sb3_hhp.oracles.base.Oracle.pending`, and ``input_closed`` becomes True.
 
     :param name: annotator name recorded with every answer
     :param input_stream: where replies are read, one per line (default: ``sys.stdin`` at construction)
     :param output_stream: where queries are shown (default: ``sys.stdout`` at construction)
-    :param image_dir: folder for the PNG files; a temporary folder, removed by :meth:`close`, by default
+    :param image_dir: folder for the PNG files; a temporary folder, removed by :meth:`~sb3_hhp.oracles.base.Oracle.close`, by default
     :param reply_window_s: seconds (> 0) a person has to reply to a shown query; None waits forever
     """
 

@@ -1,6 +1,6 @@
 """People answering at the labeling web page (``python -m sb3_hhp.label``), through the preference store.
 
-The trainer's :class:`WebOracle` and the labeling servers share one :class:`PreferenceStore` (an
+The trainer's :class:`WebOracle` and the labeling servers share one :class:`~sb3_hhp.preferences.store.PreferenceStore` (an
 object in the same process, or the same SQLite file from other processes): :meth:`WebOracle.submit`
 queues the questions in the store, annotators answer them from their browsers, and
 :meth:`WebOracle.collect` reads the answers committed since its previous call. Training never
@@ -17,11 +17,11 @@ __all__ = ["WebOracle"]
 
 
 class WebOracle(Oracle):
-    """An asynchronous oracle: the queue of questions and the answers live in a :class:`PreferenceStore`.
+    """An asynchronous oracle: the queue of questions and the answers live in a :class:`~sb3_hhp.preferences.store.PreferenceStore`.
 
     :param store: the store the labeling page serves (the caller keeps ownership and closes it)
     :param name: the oracle's name (each answer records the annotator who gave it, not this name)
-    :param run_id: recorded with every submitted query, see :meth:`PreferenceStore.count_asked`
+    :param run_id: recorded with every submitted query, see :meth:`~sb3_hhp.preferences.store.PreferenceStore.count_asked`
     :param start_seq: answers with a sequence number above this are collected; ``None`` starts after
         the newest answer already in the store (a resumed run collects only new answers), ``0``
         collects every answer in the store on the first call

@@ -317,7 +317,7 @@ class PreferenceStore:
         the store is unchanged.
 
         :param query_id: the query answered
-        :param label: FIRST, SECOND, EQUAL or INCOMPARABLE, as a :class:`Label`, its name or its value
+        :param label: FIRST, SECOND, EQUAL or INCOMPARABLE, as a :class:`~sb3_hhp.preferences.types.Label`, its name or its value
         :param annotator: who answered (non-empty)
         :param answered_at: UNIX time of the answer (now when ``None``)
         :param response_s: seconds the person took from seeing the question to answering (>= 0; ``None``

@@ -2,7 +2,7 @@
 :class:`Label` that answers it and the :class:`Answer` that records who answered and when.
 
 They belong to preference learning, so the predictor, the store and every oracle share them from
-here; :mod:`sb3_hhp.oracles` re-exports them for convenience.
+here; ``sb3_hhp.oracles`` re-exports them for convenience.
 """
 
 import enum
