@@ -50,7 +50,7 @@ Sweep file (YAML)::
     hhp_conf: sb3_hhp/hyperparams/hhp.yml    # optional
     hhp_args: []                     # optional, more options for sb3_hhp.train
     hhp_variants:                    # optional, more HhP variants: name (hhp_...) -> their own options, after hhp_args
-      hhp_rho0.2: [--oracle, noisy-scripted, --hyperparams, "oracle_kwargs:dict(rho=0.2)"]
+      hhp_rho0.2: [--oracle, noisy-scripted, --hyperparams, "query_kwargs:dict(oracle_kwargs=dict(rho=0.2))"]
     baselines_conf: sb3_hhp/hyperparams/baselines.yml   # optional
 
 Needs the ``plots`` extra (pandas).

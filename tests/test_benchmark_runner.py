@@ -73,13 +73,13 @@ def test_the_shipped_sweeps_parse():
     assert {e.variant for e in ablations.experiments} == {
         "hhp_rho0.1", "hhp_rho0.2", "hhp_no_preferences", "hhp_no_curiosity", "hhp_random_discovery"}
     assert all(ablations.is_hhp(e.variant) for e in ablations.experiments) and not ablations.is_hhp("ppo")
-    assert ablations.hhp_options("hhp_rho0.2") == ("--oracle", "noisy-scripted", "--hyperparams", "oracle_kwargs:dict(rho=0.2)")
+    assert ablations.hhp_options("hhp_rho0.2") == ("--oracle", "noisy-scripted", "--hyperparams", "query_kwargs:dict(oracle_kwargs=dict(rho=0.2))")
     smoke = load_sweep(EXPERIMENTS / "smoke.yml")
     assert [e.variant for e in smoke.experiments] == ["hhp", "dqn", "ppo", "ppo_rnd"]
     assert {e.steps for e in smoke.experiments} == {2000}
     count_doors = load_sweep(EXPERIMENTS / "minigrid_count_doors.yml")
     assert count_doors.hhp_options("hhp_count_doors") == (
-        "--hyperparams", "goal_space:'minigrid_count_doors'", "success_bonus:'best'")
+        "--hyperparams", "goal_space:'minigrid_count_doors'", "meta_kwargs:dict(success_bonus='best')")
     for path in sorted(EXPERIMENTS.glob("*.yml")):  # every sweep shipped parses
         assert load_sweep(path, check_envs=False).experiments, path.name
 
@@ -174,7 +174,7 @@ def test_hhp_variants_train_hhp_with_their_own_options(tmp_path, monkeypatch):
         steps: 100
         hhp_args: [--hyperparams, "n_envs:2"]
         hhp_variants:
-          hhp_rho0.2: [--oracle, noisy-scripted, --hyperparams, "oracle_kwargs:dict(rho=0.2)"]
+          hhp_rho0.2: [--oracle, noisy-scripted, --hyperparams, "query_kwargs:dict(oracle_kwargs=dict(rho=0.2))"]
     """), check_envs=False)
     commands = []
     monkeypatch.setattr("subprocess.run", lambda command, **kwargs: commands.append(command) or FailedRun())
@@ -187,7 +187,7 @@ def test_hhp_variants_train_hhp_with_their_own_options(tmp_path, monkeypatch):
     # the variant's own oracle is the only one the command names, and its options come last
     assert noisy.count("--oracle") == 1 and "scripted" not in noisy
     assert noisy[-6:] == ["--hyperparams", "n_envs:2", "--oracle", "noisy-scripted", "--hyperparams",
-                          "oracle_kwargs:dict(rho=0.2)"]
+                          "query_kwargs:dict(oracle_kwargs=dict(rho=0.2))"]
     # rows: HhP, then the baselines, then the sweep's HhP variants; named "HhP, <rest>" in tables
     out = tmp_path / "out"
     out.mkdir()
