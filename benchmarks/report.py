@@ -561,6 +561,28 @@ def calibration_section(root: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def hierarchical_env_section(root: Path) -> str:
+    """SB3's algorithms over a trained model's skills (``benchmarks/hierarchical_env.py``'s JSON files)."""
+    paths = sorted((root / RESULTS / "hierarchical_env").glob("*.json"))
+    if not paths:
+        return ""
+    lines = [
+        "## SB3 algorithms over HhP's skills (`HierarchicalEnv`)", "",
+        "`python benchmarks/hierarchical_env.py --env ENV --hhp-steps N --meta-steps M --seed S --out FILE` trains HhP "
+        "with the env's YAML entry, freezes its sub-goal learners and trains SB3's DQN and PPO on the semi-MDP whose "
+        "actions are its sub-goals; success on fresh episodes (seeds from 1,000), stochastic policies.", "",
+        "| file | env | seed | HhP steps | sub-goals | labels | HhP | DQN | PPO | choices each |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for path in paths:
+        data = json.loads(path.read_text())
+        lines.append(
+            f"| `{path.name}` | {data['env']} | {data['seed']} | {data['hhp_steps']:,} | {len(data['subgoals'])} | "
+            f"{data['labels']} | {data['hhp']['success_rate']:.2f} | {data['DQN']['success_rate']:.2f} | "
+            f"{data['PPO']['success_rate']:.2f} | {data['meta_steps']:,} |")
+    return "\n".join(lines) + "\n"
+
+
 def results_page(root: Path = ROOT, plot: bool = False) -> str:
     """The results page's text (and, with ``plot``, each sweep's learning curves written)."""
     folders = sorted(path.parent for path in (root / RESULTS).glob("*/results.csv"))
@@ -575,6 +597,7 @@ def results_page(root: Path = ROOT, plot: bool = False) -> str:
         "", "## Where each task stands", "", markdown_summary(summary_rows(root)),
     ]
     sections += [sweep_section(folder, root, files.get(folder.name, []), plot) for folder in folders]
+    sections.append(hierarchical_env_section(root))
     sections.append(calibration_section(root))
     return "\n".join(section for section in sections if section).rstrip() + "\n"
 
