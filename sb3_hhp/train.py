@@ -17,6 +17,11 @@ step of the envs, as SB3's algorithms do, so RL Zoo's ``--eval-freq``, ``--save-
 of ``-optimize`` and the ``--progress`` bar count primitive steps like ``-n``, divided over ``n_envs`` as RL Zoo
 does for every algorithm.
 
+**One torch thread by default.** ``--num-threads`` is 1 unless given (RL Zoo leaves torch's default, one thread per
+core): on HhP's small networks torch's OpenMP threads spin, and a run beside any other busy process stalls (two
+DoorKey-6x6 runs side by side on 2 cores: 120-137 steps/s each with torch's default, 877-970 with one thread).
+``--num-threads N`` (N > 0) sets N, ``--num-threads -1`` leaves torch's setting alone.
+
 After training, the deterministic policy (with ``--stochastic-eval``, the stochastic one) is evaluated
 on fresh environments (built like the training env, by RL Zoo) whose seeds start at ``seed + 10_000``
 (:func:`~sb3_hhp.zoo.evaluation.eval_seeds`), never a training seed. The summary (success rate, mean return, queries
@@ -24,7 +29,7 @@ used, sub-goals found, fps) is printed and, with ``--summary-json``, written as 
 (:mod:`sb3_hhp.zoo.evaluation`). The trained model is the one RL Zoo just saved to
 ``<log folder>/hhp/<ENV>_<run>/<ENV>.zip``, taken from the experiment manager in memory.
 
-``--checkpoint-freq N`` saves the model and its replays (:meth:`~sb3_hhp.hhp.hhp.HhP.save_replay_buffer`) every N primitive steps in
+``--checkpoint-freq N`` saves the model and its replays (:meth:`HhP.save_replay_buffer`) every N primitive steps in
 the run folder (``checkpoints/<steps>/``, ``checkpoint.json``), in place of the last; ``--resume RUN_FOLDER`` goes
 on from that checkpoint up to ``-n`` steps, on that run's preference database (RL Zoo's ``-i`` starts the step
 count again and a new database). The part resumed draws its episodes and random numbers from
@@ -57,6 +62,8 @@ from sb3_hhp.zoo.config import ZOO_KEYS, domain_of, select_entry  # noqa: F401
 from sb3_hhp.zoo.evaluation import eval_seeds, evaluate, summarize
 from sb3_hhp.zoo.experiment import experiment_manager_class
 
+#: torch's threads unless ``--num-threads`` says otherwise (see ``--help``)
+DEFAULT_NUM_THREADS = 1
 #: the sampler's trial parameters that HhP takes inside a ``*_kwargs`` argument: trial name -> (argument, key)
 TRIAL_GROUPED = {"query_mode": ("query_kwargs", "mode"), "t_qry": ("query_kwargs", "threshold"),
                  "center_bonus": ("meta_kwargs", "center_bonus"), "meta_input": ("meta_kwargs", "input")}
@@ -173,6 +180,12 @@ def _parser() -> argparse.ArgumentParser:
              "go to a new run folder",
     )
     parser.add_argument(
+        "--num-threads", type=int, default=DEFAULT_NUM_THREADS, metavar="N",
+        help=f"torch threads (default {DEFAULT_NUM_THREADS}; -1: torch's own default, one per core). Torch's default "
+             "stalls HhP's small networks beside any other busy process, its OpenMP threads spinning: two DoorKey-6x6 "
+             "runs side by side on 2 cores trained at 120-137 steps/s each with it, 877-970 with one thread",
+    )
+    parser.add_argument(
         "--label-server", action="store_true", help="serve the labeling page beside training (implies --oracle web)"
     )
     parser.add_argument(
@@ -221,6 +234,7 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
 
     register_fetch_envs()  # imported first, quietly: gymnasium-robotics prints a notice on Adroit envs at import
     import rl_zoo3.train
+    import torch
 
     from sb3_hhp.oracles.registry import ORACLE_NAMES
 
@@ -239,7 +253,7 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
             except SystemExit:
                 pass
         zoo_text = zoo_help.getvalue()
-        for option in ("--eval-episodes",):  # set through this entry point's options
+        for option in ("--eval-episodes", "--num-threads"):  # set through this entry point's options
             zoo_text = _without_option(zoo_text, option)
         print(zoo_text, end="")
         return None
@@ -254,6 +268,8 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
     if options.resume is not None:
         if read_checkpoint(options.resume)["replay"] is None:  # refused before anything is built
             raise ConfigError(f"--resume {options.resume}: the checkpoint has no replays (not an HhP run's checkpoint)")
+    if options.num_threads < 1 and options.num_threads != -1:
+        raise ConfigError(f"--num-threads must be >= 1, or -1 for torch's own default, got {options.num_threads}")
     if not 0 <= options.label_port <= 65535:
         raise ConfigError(f"--label-port must be in [0, 65535], got {options.label_port}")
     zoo = _zoo_peek(zoo_argv)
@@ -264,7 +280,8 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
         zoo_argv += ["--conf-file", str(default_config_path())]
     elif zoo.conf_file.endswith((".yml", ".yaml", ".py")) and not os.path.isfile(zoo.conf_file):
         raise ConfigError(f"--conf-file {zoo.conf_file}: no such file")
-    zoo_argv = ["--algo", ALGO_NAME, *zoo_argv, "--eval-episodes", str(options.periodic_eval_episodes)]
+    zoo_argv = ["--algo", ALGO_NAME, *zoo_argv, "--eval-episodes", str(options.periodic_eval_episodes),
+                "--num-threads", str(options.num_threads)]  # RL Zoo sets torch's threads when > 0
 
     register()
     managers: list[Any] = []
@@ -292,6 +309,7 @@ def run(argv: Optional[Sequence[str]] = None) -> Optional[dict[str, Any]]:
     results = evaluate(model, lambda n: manager.create_envs(n, eval_env=True, no_log=True), seeds, deterministic)
     summary = summarize(model, env_id, manager.seed, seeds, results, manager.train_seconds)
     summary["deterministic_eval"] = deterministic
+    summary["num_threads"] = torch.get_num_threads()  # what trained, as --num-threads set it
     summary["break_cycles"] = bool(getattr(model, "break_cycles", False))  # how the deterministic policy acted
     # and the stochastic one, epsilon-greedy around it (a summary without this key: plain epsilon-greedy)
     summary["stochastic_breaks_cycles"] = summary["break_cycles"]

@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parent.parent
 SUMMARY_KEYS = {
     "env", "seed", "total_timesteps", "success_rate", "mean_return", "eval_episodes", "eval_seeds", "queries_used",
     "query_budget", "num_subgoals", "subgoals", "fps", "train_seconds", "preference_db", "log_path", "model_path",
-    "config_entry", "deterministic_eval", "break_cycles", "stochastic_breaks_cycles",
+    "config_entry", "deterministic_eval", "break_cycles", "stochastic_breaks_cycles", "num_threads",
 }
 
 
@@ -175,6 +175,29 @@ def test_label_server_runs_beside_training(tmp_path: Path, capsys: pytest.Captur
     assert Path(summary["preference_db"]).is_file() and Path(summary["preference_db"]).parent == Path(summary["log_path"])
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("args, before, threads", [([], 2, 1), (["--num-threads", "2"], 1, 2), (["--num-threads", "-1"], 2, 2)])
+def test_torch_threads_are_one_unless_the_command_line_says(tmp_path: Path, args: list, before: int, threads: int) -> None:
+    """One torch thread by default (torch's own default stalls small networks beside any busy process); --num-threads
+    N gives N; -1 leaves torch's setting as it was."""
+    import torch
+
+    outside = torch.get_num_threads()
+    torch.set_num_threads(before)  # not what the run must leave, except for -1
+    try:
+        summary = train.run(["--env", "MiniGrid-Empty-5x5-v0", "-n", "200", "--seed", "0", "--eval-episodes", "0",
+                             "--eval-freq", "-1", "--verbose", "0", "-f", str(tmp_path), *args])
+        assert torch.get_num_threads() == threads
+        assert summary is not None and summary["num_threads"] == threads
+    finally:
+        torch.set_num_threads(outside)
+
+
+def test_num_threads_must_be_positive_or_minus_one(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    assert train.main(["--env", "MiniGrid-Empty-5x5-v0", "--num-threads", "0", "-f", str(tmp_path)]) == 2
+    assert "--num-threads must be >= 1, or -1 for torch's own default, got 0" in capsys.readouterr().err
+
+
 def test_select_entry_order() -> None:
     table = {"minigrid": {}, "default": {}, "MiniGrid-DoorKey-5x5-v0": {}}
     assert select_entry(table, "MiniGrid-DoorKey-5x5-v0") == "MiniGrid-DoorKey-5x5-v0"
@@ -252,6 +275,7 @@ def test_help_lists_each_option_once(capsys: pytest.CaptureFixture) -> None:
     assert train.main(["--help"]) == 0
     text = capsys.readouterr().out
     assert text.count("  --eval-episodes EVAL_EPISODES") == 1 and text.count("[--eval-episodes EVAL_EPISODES]") == 1
+    assert text.count("  --num-threads N ") == 1 and "NUM_THREADS" not in text  # this entry point's, not RL Zoo's
     assert "--eval-freq" in text  # RL Zoo's options are listed too
 
 
