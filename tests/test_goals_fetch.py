@@ -8,6 +8,7 @@ import pytest
 import torch as th
 from stable_baselines3 import DDPG
 from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_hhp import HhP
 from sb3_hhp.hierarchy.options import is_success as _is_success
@@ -137,9 +138,19 @@ def test_hhp_trains_ddpg_subpolicies_on_fetch_reach_and_round_trips(tmp_path) ->
     assert answered and all({"desired_goal", "goal1_achieved", "goal2_achieved"} <= set(q.info) for q in answered)
     assert len(model.predictor) > 0
 
+    # evaluate_policy (a VecEnv, the sub-goal carried in ``state``) plays the episode a plain loop over predict does
     eval_env = wrap_env(gym.make(REACH))
-    mean_return, _ = evaluate_policy(model, eval_env, n_eval_episodes=2, deterministic=True)
-    assert -50.0 <= mean_return <= 0.0  # Fetch pays -1 a step until the target is reached, 50 steps an episode
+    vec_env = DummyVecEnv([lambda: wrap_env(gym.make(REACH))])
+    vec_env.seed(3)
+    returns, lengths = evaluate_policy(model, vec_env, n_eval_episodes=1, deterministic=True, return_episode_rewards=True,
+                                       warn=False)
+    obs, _ = eval_env.reset(seed=3)
+    state, start, total, steps, done = None, np.ones(1, dtype=bool), 0.0, 0, False
+    while not done:
+        action, state = model.predict(obs, state=state, episode_start=start, deterministic=True)
+        obs, reward, terminated, truncated, _ = eval_env.step(action)
+        total, steps, done, start = total + float(reward), steps + 1, terminated or truncated, np.zeros(1, dtype=bool)
+    assert (returns[0], lengths[0]) == (pytest.approx(total), steps)
     model.save(tmp_path / "fetch")
     model.save_replay_buffer(tmp_path / "fetch_replay")
     loaded = HhP.load(tmp_path / "fetch", env=gym.make(REACH))
@@ -179,20 +190,20 @@ def test_cnn_policy_on_flat_observations_names_the_policy_to_use() -> None:
 
 
 def test_a_learner_view_on_ddpg_subgoals_names_the_fix() -> None:
-    with pytest.raises(ValueError, match="view.*DDPG.*leave view out"):
+    with pytest.raises(ValueError, match="view.*discrete actions.*continuous-action.*leave view out"):
         HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(view=3))
 
 
 def test_a_learner_overview_on_ddpg_subgoals_names_the_fix() -> None:
-    with pytest.raises(ValueError, match="overview.*DDPG.*leave overview out"):
+    with pytest.raises(ValueError, match="overview.*discrete actions.*continuous-action.*leave overview out"):
         HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(overview=3))
 
 
 def test_a_target_range_on_ddpg_subgoals_names_the_fix() -> None:
-    with pytest.raises(ValueError, match="target_range.*discrete actions.*leave it out.*DDPG"):
+    with pytest.raises(ValueError, match="target_range.*discrete actions.*continuous-action.*leave target_range out"):
         HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(target_range=[-1.0, 1.0]))
 
 
 def test_a_run_clock_on_ddpg_subgoals_names_the_fix() -> None:
-    with pytest.raises(ValueError, match="exploration_run_steps.*DDPG.*leave it out"):
+    with pytest.raises(ValueError, match="exploration_run_steps.*discrete actions.*continuous-action.*leave exploration_run_steps out"):
         HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(exploration_run_steps=1000))
