@@ -9,10 +9,13 @@ runs, in Algorithm 1's order:
   Bradley-Terry training when labels arrived (line 27);
 - :meth:`~BetweenEpisodes.discover_subgoals`: the first sub-goal (line 5) and CSD (line 29);
 - :meth:`~BetweenEpisodes.update_curiosity`: the RND update (line 35; Omega refreshes every T steps as they pass);
-- the sub-goal gallery for the labeling app, every ``gallery_every`` episodes.
+- the sub-goal gallery for the labeling app, every ``gallery_every`` episodes (:meth:`~BetweenEpisodes.subgoal_records`);
+
+and, when ``learn`` starts, :meth:`~BetweenEpisodes.resume_preferences` feeds the predictor what the store holds.
 """
 
 import hashlib
+from collections import Counter
 from collections.abc import Hashable
 from typing import Any
 
@@ -211,3 +214,47 @@ class BetweenEpisodes:
             return
         loss = self.rnd.update(np.stack(trace.low_obs), n_epochs=n_epochs)
         self.logger.record("hhp/rnd_loss", loss)
+
+    # ------------------------------------------------------------------ resuming, the gallery
+    def resume_preferences(self: Any) -> int:
+        """Feed the predictor every answered label of the store it has not seen yet, and count every
+        question already asked against the budget, so a resumed run loses no label and asks nothing twice."""
+        self._asked_signatures = self._asked_goal_keys = None  # read again from the store
+        added = 0
+        for _, query, answer in self.store.answers_since(0):
+            if query.query_id in self.consumed_query_ids:
+                continue
+            self.consumed_query_ids.add(query.query_id)
+            added += int(self.add_preference(query, answer.label))
+        state = self.query_selector.state_dict()
+        asked = self.store.count_asked()
+        if asked > state["used"]:
+            state["used"] = min(asked, self.query_budget)
+            self.query_selector.load_state_dict(state)
+        if added:
+            self.last_predictor_stats = self.predictor.train()
+        return added
+
+    def subgoal_records(self: Any) -> list[dict[str, Any]]:
+        """One record per sub-goal for the gallery: id, image, when found, success rate, recent choices, mean score."""
+        counts = Counter(self.recent_choices)
+        records = []
+        goal_obs = self.predictor_inputs(self.goal_obs) if self.subgoals else None
+        states = np.stack(self._last_trace.high_obs) if self._last_trace.high_obs else None
+        states = None if states is None else self.predictor_inputs(states)
+        for goal_id, goal in enumerate(self.subgoals):
+            mean_score = None
+            if states is not None and len(self.predictor) > 0:
+                mean_score = float(np.mean(self.predictor.score(states, np.repeat(goal_obs[goal_id : goal_id + 1], len(states), 0))))
+            records.append(
+                dict(
+                    id=goal_id,
+                    image=goal.image if goal.image is not None else np.zeros((8, 8, 3), np.uint8),
+                    found_at=int(goal.found_at),
+                    success_rate=self.subpolicies.success_rate(goal_id) if goal_id < len(self.subpolicies) else None,
+                    chosen_recently=int(counts.get(goal_id, 0)),
+                    mean_score=mean_score,
+                    name=self.goal_space.describe(goal.key),
+                )
+            )
+        return records

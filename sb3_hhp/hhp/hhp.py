@@ -12,7 +12,7 @@ import io
 import pathlib
 import pickle
 import zipfile
-from collections import Counter, deque
+from collections import deque
 from typing import Any, ClassVar, Optional, TypeVar, Union
 
 import gymnasium as gym
@@ -612,25 +612,6 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
             self._primitive_env = PrimitiveVecEnv(self.options)
         return self._primitive_env
 
-    def resume_preferences(self) -> int:
-        """Feed the predictor every answered label of the store it has not seen yet, and count every
-        question already asked against the budget, so a resumed run loses no label and asks nothing twice."""
-        self._asked_signatures = self._asked_goal_keys = None  # read again from the store
-        added = 0
-        for _, query, answer in self.store.answers_since(0):
-            if query.query_id in self.consumed_query_ids:
-                continue
-            self.consumed_query_ids.add(query.query_id)
-            added += int(self.add_preference(query, answer.label))
-        state = self.query_selector.state_dict()
-        asked = self.store.count_asked()
-        if asked > state["used"]:
-            state["used"] = min(asked, self.query_budget)
-            self.query_selector.load_state_dict(state)
-        if added:
-            self.last_predictor_stats = self.predictor.train()
-        return added
-
     def dump_logs(self) -> None:
         """SB3's rollout logs plus HhP's: queries, sub-goals, predictor, confidence, curiosity, sub-goal success."""
         self.logger.record("hhp/queries_used", self.query_selector.used)
@@ -651,30 +632,6 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
             if rate is not None:
                 self.logger.record(f"subgoals/success_rate_{goal_id}", rate)
         super().dump_logs()
-
-    def subgoal_records(self) -> list[dict[str, Any]]:
-        """One record per sub-goal for the gallery: id, image, when found, success rate, recent choices, mean score."""
-        counts = Counter(self.recent_choices)
-        records = []
-        goal_obs = self.predictor_inputs(self.goal_obs) if self.subgoals else None
-        states = np.stack(self._last_trace.high_obs) if self._last_trace.high_obs else None
-        states = None if states is None else self.predictor_inputs(states)
-        for goal_id, goal in enumerate(self.subgoals):
-            mean_score = None
-            if states is not None and len(self.predictor) > 0:
-                mean_score = float(np.mean(self.predictor.score(states, np.repeat(goal_obs[goal_id : goal_id + 1], len(states), 0))))
-            records.append(
-                dict(
-                    id=goal_id,
-                    image=goal.image if goal.image is not None else np.zeros((8, 8, 3), np.uint8),
-                    found_at=int(goal.found_at),
-                    success_rate=self.subpolicies.success_rate(goal_id) if goal_id < len(self.subpolicies) else None,
-                    chosen_recently=int(counts.get(goal_id, 0)),
-                    mean_score=mean_score,
-                    name=self.goal_space.describe(goal.key),
-                )
-            )
-        return records
 
     # ------------------------------------------------------------------ save / load
     def _excluded_save_params(self) -> list[str]:
