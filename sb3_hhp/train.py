@@ -29,10 +29,10 @@ used, sub-goals found, fps) is printed and, with ``--summary-json``, written as 
 (:mod:`sb3_hhp.zoo.evaluation`). The trained model is the one RL Zoo just saved to
 ``<log folder>/hhp/<ENV>_<run>/<ENV>.zip``, taken from the experiment manager in memory.
 
-``--checkpoint-freq N`` saves the model and its replays (:meth:`HhP.save_replay_buffer`) every N primitive steps in
-the run folder (``checkpoints/<steps>/``, ``checkpoint.json``), in place of the last; ``--resume RUN_FOLDER`` goes
-on from that checkpoint up to ``-n`` steps, on that run's preference database (RL Zoo's ``-i`` starts the step
-count again and a new database). The part resumed draws its episodes and random numbers from
+``--checkpoint-freq N`` saves the model and its replays (:meth:`~sb3_hhp.hhp.hhp.HhP.save_replay_buffer`) every N
+primitive steps in the run folder (``checkpoints/<steps>/``, ``checkpoint.json``), in place of the last;
+``--resume RUN_FOLDER`` goes on from that checkpoint up to ``-n`` steps, on that run's preference database (RL Zoo's ``-i``
+starts the step count again and a new database). The part resumed draws its episodes and random numbers from
 :func:`~sb3_hhp.zoo.checkpoints.resume_seed` (the run's seed and the checkpoint's step count), so it does not replay
 the layouts the run began with (:mod:`sb3_hhp.zoo.checkpoints`).
 

@@ -205,5 +205,6 @@ def test_a_target_range_on_ddpg_subgoals_names_the_fix() -> None:
 
 
 def test_a_run_clock_on_ddpg_subgoals_names_the_fix() -> None:
-    with pytest.raises(ValueError, match="exploration_run_steps.*discrete actions.*continuous-action.*leave exploration_run_steps out"):
+    message = "exploration_run_steps.*discrete actions.*continuous-action.*leave exploration_run_steps out"
+    with pytest.raises(ValueError, match=message):
         HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(exploration_run_steps=1000))

@@ -176,8 +176,10 @@ def test_label_server_runs_beside_training(tmp_path: Path, capsys: pytest.Captur
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("args, before, threads", [([], 2, 1), (["--num-threads", "2"], 1, 2), (["--num-threads", "-1"], 2, 2)])
-def test_torch_threads_are_one_unless_the_command_line_says(tmp_path: Path, args: list, before: int, threads: int) -> None:
+@pytest.mark.parametrize("args, before, threads",
+                         [([], 2, 1), (["--num-threads", "2"], 1, 2), (["--num-threads", "-1"], 2, 2)])
+def test_torch_threads_are_one_unless_the_command_line_says(tmp_path: Path, args: list, before: int,
+                                                            threads: int) -> None:
     """One torch thread by default (torch's own default stalls small networks beside any busy process); --num-threads
     N gives N; -1 leaves torch's setting as it was."""
     import torch

@@ -33,7 +33,7 @@ def checkpoint_callback_class() -> type:
     class LatestCheckpoint(BaseCallback):
         """Every ``save_freq`` primitive steps (and at the end of training), the model (:meth:`HhP.save`), its
         replays (:meth:`HhP.save_replay_buffer`; any off-policy model's) and the state of a
-        :class:`~sb3_hhp.curiosity.VecRNDReward` around its env (an on-policy baseline's curiosity) in
+        :class:`~sb3_hhp.curiosity.vec_rnd.VecRNDReward` around its env (an on-policy baseline's curiosity) in
         ``<run folder>/checkpoints/<steps>/``, then ``checkpoint.json`` pointing at them, then the older checkpoints
         removed: a run stopped at any moment keeps a complete checkpoint, which ``--resume`` (HhP) or the benchmark
         runner (every variant) goes on from. A checkpoint the disk cannot hold is not written (less free space than
@@ -139,7 +139,7 @@ def checkpoint_bytes(folder: Path) -> int:
 
 
 def vec_rnd_of(env: Any) -> Any:
-    """The :class:`~sb3_hhp.curiosity.VecRNDReward` among the VecEnv wrappers of ``env``, None when there is none."""
+    """The :class:`~sb3_hhp.curiosity.vec_rnd.VecRNDReward` among the VecEnv wrappers of ``env``, None when there is none."""
     from stable_baselines3.common.vec_env import unwrap_vec_wrapper
 
     from sb3_hhp.curiosity import VecRNDReward
@@ -192,8 +192,8 @@ def resume_seed(seed: int, timesteps: int) -> int:
 
     A resumed part seeded with the run's own seed would replay the episodes the run began with. This seed is drawn
     from ``(seed, timesteps)`` (the same checkpoint resumes the same way) in ``[2**30, 2**31)``: above every
-    training seed ``seed .. seed + n_envs - 1`` and evaluation seed (:func:`~sb3_hhp.zoo.evaluation.eval_seeds`) of a run seeded below
-    ``2**30 - 10**6``, and below ``2**32`` with any env's rank added.
+    training seed ``seed .. seed + n_envs - 1`` and evaluation seed (:func:`~sb3_hhp.zoo.evaluation.eval_seeds`) of a
+    run seeded below ``2**30 - 10**6``, and below ``2**32`` with any env's rank added.
 
     :param seed: the run's training seed (>= 0)
     :param timesteps: the checkpoint's step count (>= 0)

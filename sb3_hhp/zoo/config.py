@@ -86,7 +86,7 @@ def select_entry(table: dict[str, Any], env_id: str, config: str = "the hyperpar
 
 
 def hhp_arguments() -> list[str]:
-    """The keyword arguments of :class:`~sb3_hhp.HhP` a hyperparameter file may set."""
+    """The keyword arguments of :class:`~sb3_hhp.hhp.hhp.HhP` a hyperparameter file may set."""
     from sb3_hhp.hhp import HhP
 
     excluded = {"self", "policy", "env", "_init_setup_model", *COMMAND_LINE_KEYS}
