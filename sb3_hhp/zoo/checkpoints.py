@@ -163,7 +163,7 @@ def read_checkpoint(run_folder: str) -> dict[str, Any]:
         checkpoint = {"timesteps": int(checkpoint["timesteps"]), "model": str(folder / checkpoint["model"]),
                       **{what: str(folder / checkpoint[what]) if checkpoint.get(what) else None
                          for what in ("replay", "vec_rnd")},
-                      "run_folder": str(folder), "train_seconds": float(checkpoint["train_seconds"])}
+                      "run_folder": str(folder), "train_seconds": float(checkpoint.get("train_seconds", 0.0))}
     except (ValueError, KeyError, TypeError) as error:
         raise ConfigError(f"--resume {run_folder}: {pointer} is damaged ({error})") from error
     for what in ("model", "replay", "vec_rnd"):
