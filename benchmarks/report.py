@@ -26,7 +26,7 @@ import argparse
 import json
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NamedTuple, Optional
 
@@ -538,49 +538,50 @@ def sweep_section(folder: Path, root: Path, files: list[tuple[Path, dict]], plot
     return "\n".join(lines) + "\n"
 
 
-def calibration_section(root: Path) -> str:
-    """The CI learning test's calibrations (``benchmarks/calibrate_learning_test.py``'s JSON files)."""
-    paths = sorted((root / RESULTS).glob("learning_test_calibration*.json"))
+def json_section(paths: Sequence[Path], title: str, intro: str, columns: Sequence[str], aligns: str,
+                 row: Callable[[Path, dict], Sequence[str]]) -> str:
+    """A section of the page with one table row per JSON results file (none: no section)."""
     if not paths:
         return ""
-    lines = [
-        "## The CI learning test's calibration", "",
+    lines = [f"## {title}", "", intro, "", "| " + " | ".join(columns) + " |",
+             "| " + " | ".join("---:" if align == "r" else "---" for align in aligns) + " |"]
+    lines += ["| " + " | ".join(row(path, json.loads(path.read_text()))) + " |" for path in paths]
+    return "\n".join(lines) + "\n"
+
+
+def _calibration_row(path: Path, data: dict) -> list[str]:
+    rows = pd.DataFrame(data["rows"])
+    return [f"`{path.name}`", _seeds(rows["seed"]), f"{rows['success_rate'].min():.2f}",
+            f"{rows['mean_return'].min():.3f}-{rows['mean_return'].max():.3f}",
+            f"{int(rows['questions'].min())}-{int(rows['questions'].max())}", "yes" if data.get("kernels") else "no"]
+
+
+def calibration_section(root: Path) -> str:
+    """The CI learning test's calibrations (``benchmarks/calibrate_learning_test.py``'s JSON files)."""
+    return json_section(
+        sorted((root / RESULTS).glob("learning_test_calibration*.json")), "The CI learning test's calibration",
         "`tests/test_learning.py` trains HhP 8,000 steps on MiniGrid-Empty-Random-5x5 and evaluates 30 fresh episodes; "
         "`python benchmarks/calibrate_learning_test.py --seeds ...` runs it seed by seed (random policy's mean "
-        "return: 0.354). `kernels`: the CPU code paths pinned (`tests/conftest.py`).", "",
-        "| file | seeds | success rate (lowest) | mean return (range) | questions (range) | kernels pinned |",
-        "| --- | ---: | ---: | ---: | ---: | --- |",
-    ]
-    for path in paths:
-        data = json.loads(path.read_text())
-        rows = pd.DataFrame(data["rows"])
-        lines.append(
-            f"| `{path.name}` | {_seeds(rows['seed'])} | {rows['success_rate'].min():.2f} | "
-            f"{rows['mean_return'].min():.3f}-{rows['mean_return'].max():.3f} | "
-            f"{int(rows['questions'].min())}-{int(rows['questions'].max())} | {'yes' if data.get('kernels') else 'no'} |")
-    return "\n".join(lines) + "\n"
+        "return: 0.354). `kernels`: the CPU code paths pinned (`tests/conftest.py`).",
+        ("file", "seeds", "success rate (lowest)", "mean return (range)", "questions (range)", "kernels pinned"),
+        "lrrrrl", _calibration_row)
+
+
+def _hierarchical_env_row(path: Path, data: dict) -> list[str]:
+    return [f"`{path.name}`", data["env"], str(data["seed"]), f"{data['hhp_steps']:,}", str(len(data["subgoals"])),
+            str(data["labels"]), *(f"{data[name]['success_rate']:.2f}" for name in ("hhp", "DQN", "PPO")),
+            f"{data['meta_steps']:,}"]
 
 
 def hierarchical_env_section(root: Path) -> str:
     """SB3's algorithms over a trained model's skills (``benchmarks/hierarchical_env.py``'s JSON files)."""
-    paths = sorted((root / RESULTS / "hierarchical_env").glob("*.json"))
-    if not paths:
-        return ""
-    lines = [
-        "## SB3 algorithms over HhP's skills (`HierarchicalEnv`)", "",
+    return json_section(
+        sorted((root / RESULTS / "hierarchical_env").glob("*.json")), "SB3 algorithms over HhP's skills (`HierarchicalEnv`)",
         "`python benchmarks/hierarchical_env.py --env ENV --hhp-steps N --meta-steps M --seed S --out FILE` trains HhP "
         "with the env's YAML entry, freezes its sub-goal learners and trains SB3's DQN and PPO on the semi-MDP whose "
-        "actions are its sub-goals; success on fresh episodes (seeds from 1,000), stochastic policies.", "",
-        "| file | env | seed | HhP steps | sub-goals | labels | HhP | DQN | PPO | choices each |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
-    ]
-    for path in paths:
-        data = json.loads(path.read_text())
-        lines.append(
-            f"| `{path.name}` | {data['env']} | {data['seed']} | {data['hhp_steps']:,} | {len(data['subgoals'])} | "
-            f"{data['labels']} | {data['hhp']['success_rate']:.2f} | {data['DQN']['success_rate']:.2f} | "
-            f"{data['PPO']['success_rate']:.2f} | {data['meta_steps']:,} |")
-    return "\n".join(lines) + "\n"
+        "actions are its sub-goals; success on fresh episodes (seeds from 1,000), stochastic policies.",
+        ("file", "env", "seed", "HhP steps", "sub-goals", "labels", "HhP", "DQN", "PPO", "choices each"),
+        "llrrrrrrrr", _hierarchical_env_row)
 
 
 def results_page(root: Path = ROOT, plot: bool = False) -> str:
