@@ -42,7 +42,7 @@ LAYERS: tuple[frozenset[str], ...] = (
     frozenset({"oracles"}),
     frozenset({"discovery", "hierarchy"}),
     frozenset({"hhp", ROOT}),
-    frozenset({"label", "gallery", "train"}),
+    frozenset({"label", "gallery", "train", "zoo"}),
 )
 
 

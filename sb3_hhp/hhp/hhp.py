@@ -41,7 +41,8 @@ from sb3_hhp.hhp.acting import HierarchicalActing
 from sb3_hhp.hhp.bonus import PreferenceBonus
 from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, GridCNN, MlpPolicy, MultiInputPolicy
 from sb3_hhp.hhp.episodes import BetweenEpisodes
-from sb3_hhp.hierarchy.learners import SharedHeadsDQN, StackedDQN
+from sb3_hhp.hierarchy.heads import SharedHeadsDQN
+from sb3_hhp.hierarchy.learners import StackedDQN
 from sb3_hhp.hierarchy.options import (
     EpisodeTrace, OptionRunner, PrimitiveVecEnv, Subgoal, SubgoalSet, SubgoalVecEnv, check_vec_env, env_view,
 )

@@ -763,14 +763,3 @@ class StackedDQN:
         self.exp_avg[:n], self.exp_avg_sq[:n] = self._stored(state["exp_avg"]), self._stored(state["exp_avg_sq"])
         self.adam_steps[:n] = state["adam_steps"]
         self._load_counters(state)
-
-
-def __getattr__(name: str) -> Any:
-    """:class:`~sb3_hhp.hierarchy.heads.SharedHeadsDQN` (and its network) from here too, imported when first asked
-    for: it subclasses :class:`StackedDQN`, so its module imports this one."""
-    if name in ("SharedHeadsDQN", "GoalHeadsQNetwork"):
-        from sb3_hhp.hierarchy import heads
-
-        return getattr(heads, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
