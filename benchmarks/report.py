@@ -41,7 +41,8 @@ except ImportError:  # run as a script, python benchmarks/report.py: the reposit
     from benchmarks.run import Experiment, _curve_from_evaluations, attempt_evaluations
 
 #: variant -> name in tables and legends, in the order of tables and plots
-VARIANT_NAMES = {"hhp": "HhP", "dqn": "DQN", "ppo": "PPO", "ppo_rnd": "PPO + RND"}
+VARIANT_NAMES = {"hhp": "HhP", "dqn": "DQN", "ppo": "PPO", "ppo_rnd": "PPO + RND", "ddpg_her": "DDPG + HER",
+                 "tqc_her": "TQC + HER"}
 #: columns a results file must have
 REQUIRED_COLUMNS = ("env", "variant", "seed", "steps", "success_det", "success_stoch", "labels_used", "wall_seconds")
 #: points of the common step grid the seeds' curves are interpolated onto
@@ -403,7 +404,8 @@ SUMMARY = (
          (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")), not_run=("dqn",)),
     Task("MiniGrid-ObstructedMaze-1Q-v1", Source("minigrid_tasks", "hhp"),
          (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")), not_run=("dqn",)),
-    Task("Fetch (FetchPush, FetchPickAndPlace; the `fetch` entry)", None, note="not run yet"),
+    Task("FetchReach-v4", Source("fetch_reach", "hhp"), not_run=("ddpg_her", "tqc_her")),
+    Task("Fetch Push, PickAndPlace, Slide (the `fetch` entry)", None, note="not run yet"),
     Task("Atari (Montezuma's Revenge, Pitfall, ...; the `atari` entry)", None, note="not run yet"),
 )
 SUMMARY_HEADER = ("task", "method", "sweep: variant", "steps", "seeds", "success (deterministic)",
