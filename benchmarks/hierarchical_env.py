@@ -25,14 +25,14 @@ from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_hhp import HhP, HierarchicalEnv
 from sb3_hhp.goals import wrap_env
-
-ENTRY_ONLY = ("env_wrapper", "n_envs", "policy", "n_timesteps", "oracle")
+from sb3_hhp.zoo.config import ZOO_KEYS, default_config_path, select_entry
 
 
 def entry(env_id: str) -> dict[str, Any]:
-    """The HhP arguments of ``env_id``'s entry in the package's YAML (the keys RL Zoo reads itself left out)."""
-    table = yaml.safe_load((pathlib.Path(__file__).parents[1] / "sb3_hhp" / "hyperparams" / "hhp.yml").read_text())
-    return {key: value for key, value in table[env_id].items() if key not in ENTRY_ONLY}
+    """The HhP arguments of ``env_id``'s entry in the package's YAML, as ``sb3_hhp.train`` picks it (the keys RL Zoo
+    reads itself left out)."""
+    table = yaml.safe_load(default_config_path().read_text())
+    return {key: value for key, value in table[select_entry(table, env_id)].items() if key not in ZOO_KEYS}
 
 
 def success(model: Any, env: gym.Env, episodes: int, seed: int) -> dict[str, float]:

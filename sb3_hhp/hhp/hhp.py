@@ -244,10 +244,11 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         check_grouped(self.query_kwargs, self.predictor_kwargs, self.discovery_kwargs, self.subgoal_learner_kwargs,
                       self.meta_kwargs)
         learner, meta = self.subgoal_learner_kwargs, self.meta_kwargs
+        continuous = env is not None and _continuous_actions(env)  # an env id is built to be read: once
         if learner["kind"] is None and env is not None:
-            learner["kind"] = "goal_conditioned" if _continuous_actions(env) else "stacked"
+            learner["kind"] = "goal_conditioned" if continuous else "stacked"
         if learner["train_shared"] is None:  # discrete sub-goal learners train on every step; one DDPG model each does not
-            learner["train_shared"] = learner["share_experience"] and (env is None or not _continuous_actions(env))
+            learner["train_shared"] = learner["share_experience"] and not continuous
         subgoals = self.discovery_kwargs.pop("subgoals")
         self.initial_subgoals = [np.asarray(goal) for goal in subgoals] if subgoals else []
         self.oracle_spec = oracle

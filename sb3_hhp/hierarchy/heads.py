@@ -17,6 +17,7 @@ from stable_baselines3.dqn.policies import DQNPolicy
 from torch.nn import functional as F
 
 from sb3_hhp.hierarchy.learners import StackedDQN
+from sb3_hhp.hierarchy.learner_kwargs import check_learners_state
 
 
 class GoalHeadsQNetwork(th.nn.Module):
@@ -237,9 +238,7 @@ class SharedHeadsDQN(StackedDQN):
         }
 
     def load_state_dict(self, state: Any) -> None:
-        if not isinstance(state, dict) or state.get("format") != "sb3_hhp.SharedHeadsDQN":
-            raise ValueError("These sub-goal learners were not saved by SharedHeadsDQN (subgoal_learner_kwargs kind='heads'): load "
-                             "the model with the subgoal_learner it was trained with")
+        check_learners_state(state, "SharedHeadsDQN", "heads")
         for key in state["goal_keys"]:
             self.add(key)
         if self.network.capacity < state["capacity"]:

@@ -91,3 +91,11 @@ def check_range(target_range: Optional[Sequence[float]]) -> Optional[tuple[float
     if not (np.isfinite(low) and np.isfinite(high) and low < high):
         raise ValueError(f"target_range (subgoal_learner_kwargs) must be finite with low < high, got {target_range!r}")
     return low, high
+
+
+def check_learners_state(state: Any, learner: str, kind: str) -> None:
+    """Refuse a saved ``state`` of sub-goal learners that ``learner`` (kind ``kind`` of ``subgoal_learner_kwargs``)
+    did not write: a clear error, not a failure somewhere inside torch."""
+    if not isinstance(state, dict) or state.get("format") != f"sb3_hhp.{learner}":
+        raise ValueError(f"These sub-goal learners were not saved by {learner} (subgoal_learner_kwargs kind={kind!r}): "
+                         "load the model with the subgoal_learner_kwargs kind it was trained with")

@@ -30,8 +30,8 @@ from torch.nn import functional as F
 from sb3_hhp.dqn.buffers import buffer_state, load_buffer_state
 from sb3_hhp.hierarchy.encoders import GridInput, Indicators
 from sb3_hhp.hierarchy.learner_kwargs import (  # noqa: F401  (the kwargs re-exported: sb3_hhp.hhp imports them from here)
-    DEFAULT_SUBPOLICY_KWARGS, PAPER_SUBPOLICY_KWARGS, check_optional_count, check_range, checked_subpolicy_kwargs,
-    default_subpolicy_kwargs, lower_bound_option,
+    DEFAULT_SUBPOLICY_KWARGS, PAPER_SUBPOLICY_KWARGS, check_learners_state, check_optional_count, check_range,
+    checked_subpolicy_kwargs, default_subpolicy_kwargs, lower_bound_option,
 )
 from sb3_hhp.hierarchy.replay import SharedReplay
 from sb3_hhp.hierarchy.row_adam import RowAdam
@@ -750,9 +750,7 @@ class StackedDQN:
             replay.truncated[newest] |= ~replay.terminated[newest]
 
     def load_state_dict(self, state: Any) -> None:
-        if not isinstance(state, dict) or state.get("format") != "sb3_hhp.StackedDQN":
-            raise ValueError("These sub-goal learners were not saved by StackedDQN (subgoal_learner_kwargs kind='stacked'): load the "
-                             "model with the subgoal_learner it was trained with")
+        check_learners_state(state, "StackedDQN", "stacked")
         for key in state["goal_keys"]:
             self.add(key)
         n = len(self)

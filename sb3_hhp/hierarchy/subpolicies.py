@@ -20,6 +20,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import VecTransposeImage
 
 from sb3_hhp.dqn.buffers import buffer_state, load_buffer_state
+from sb3_hhp.hierarchy.learner_kwargs import check_learners_state
 
 
 class SpacesEnv(gym.Env):
@@ -309,8 +310,6 @@ class PerGoalLearners:
             load_buffer_state(buffer, saved, buffer.buffer_size, f"sub-goal {goal}'s replay buffer")
 
     def load_state_dict(self, state: Any) -> None:
-        if not isinstance(state, dict) or state.get("format") != "sb3_hhp.PerGoalLearners":
-            raise ValueError("These sub-goal learners were not saved by PerGoalLearners (DDPG sub-goals of Box actions): "
-                             "load the model into an env of the action space it was trained with")
+        check_learners_state(state, "PerGoalLearners", "per_goal")
         self.goal_keys = list(state["goal_keys"])
         self.subpolicies.load_state_dict(state["subpolicies"])
