@@ -8,7 +8,7 @@ from gymnasium import spaces
 from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_hhp import HhP
-from sb3_hhp.goals import ImageGoalSpace, MiniGridGoalSpace, make_goal_space, wrap_env
+from sb3_hhp.goals import SUCCESS_KEY, ImageGoalSpace, MiniGridGoalSpace, make_goal_space, wrap_env
 from sb3_hhp.goals.similarity import ssim_to_set
 from sb3_hhp.oracles.synthetic import SyntheticOracle
 
@@ -146,3 +146,111 @@ def test_hhp_trains_on_a_fixed_layout_image_env_with_cnn_policy(tmp_path) -> Non
         assert int(action_a) == int(action_b)
         obs, *_ = env.step(int(action_a))
         start = np.zeros(1, dtype=bool)
+
+
+# ---------------------------------------------------------------------------- landmarks (the paper's Atari detector)
+def gray_frame() -> np.ndarray:
+    return np.zeros((20, 20, 1), dtype=np.uint8)
+
+
+def change(frame: np.ndarray, pixels: list, value: int = 200) -> np.ndarray:
+    changed = frame.copy()
+    for row, col in pixels:
+        changed[row, col] = value
+    return changed
+
+
+def test_a_landmark_is_attained_when_20_percent_of_its_box_changed() -> None:
+    """A 10x10 box: 19 changed pixels do not attain it, 20 do; changes outside every box attain nothing; an RGB pixel
+    changes when any channel does; the last frame of a stack is read."""
+    reference = gray_frame()
+    space = ImageGoalSpace(landmarks=[(0, 0, 10, 10), (10, 10, 20, 15)], reference=reference, changed_fraction=0.2)
+    inside = [(row, col) for row in range(10) for col in range(10)]
+    assert space.key(reference) == ("landmarks", ())
+    assert space.key(change(reference, inside[:19])) == ("landmarks", ())
+    np.testing.assert_allclose(space.changed(change(reference, inside[:19])), [0.19, 0.0])
+    assert space.key(change(reference, inside[:20])) == ("landmarks", (0,))
+    outside = [(row, col) for row in range(10, 20) for col in range(0, 10)] + [(row, 19) for row in range(20)]
+    assert space.key(change(reference, outside)) == ("landmarks", ())  # 120 pixels, none in a box
+    second = [(row, col) for row in range(10, 20) for col in range(10, 15)]  # a 10x5 box: 10 pixels are 20 %
+    assert space.key(change(reference, inside[:20] + second[:10])) == ("landmarks", (0, 1))
+    assert space.key(change(reference, second[:9])) == ("landmarks", ())
+    stricter = ImageGoalSpace(landmarks=[(0, 0, 10, 10)], reference=reference, changed_fraction=0.5)
+    assert stricter.key(change(reference, inside[:49])) == ("landmarks", ())
+    assert stricter.key(change(reference, inside[:50])) == ("landmarks", (0,))
+    rgb = np.zeros((20, 20, 3), dtype=np.uint8)
+    colour = ImageGoalSpace(landmarks=[(0, 0, 10, 10)], reference=rgb)
+    one_channel = rgb.copy()
+    one_channel[:2, :, 2] = 1  # rows 0-1, 10 pixels of the box, blue only
+    assert colour.changed(one_channel)[0] == 0.2 and colour.key(one_channel) == ("landmarks", (0,))
+    stack = np.concatenate([change(reference, inside), change(reference, inside[:20])], axis=-1)  # oldest first
+    assert space.key(stack) == ("landmarks", (0,)) and space.changed(stack)[0] == 0.2
+
+
+def test_a_landmark_subgoal_is_reached_where_all_its_boxes_are_attained() -> None:
+    """done(s, g) per box (a set of landmarks is reached where each of them is), the subgoal of no landmark only
+    where none is, "task solved" by equality; distinct keys are not alike (SSIM would call two frames of a room alike)."""
+    space = ImageGoalSpace(landmarks=[(0, 0, 10, 10), (10, 10, 20, 20)], reference=gray_frame())
+    none, first, second, both = (("landmarks", ()), ("landmarks", (0,)), ("landmarks", (1,)), ("landmarks", (0, 1)))
+    assert space.achieved(first, first) and space.achieved(both, first) and space.achieved(both, second)
+    assert not space.achieved(first, both) and not space.achieved(second, first) and not space.achieved(none, first)
+    assert space.achieved(none, none) and not space.achieved(first, none)
+    assert space.achieved(SUCCESS_KEY, SUCCESS_KEY) and not space.achieved(both, SUCCESS_KEY)
+    assert not space.choosable(both, first) and space.choosable(second, first)
+    frames = np.stack([gray_frame()] * 3)
+    assert space.similarity(first, frames[0], [first, both, none], frames).tolist() == [1.0, 0.0, 0.0]
+    assert [space.describe(key) for key in (none, first, both, SUCCESS_KEY)] == [
+        "no landmark", "landmark 0", "landmarks 0, 1", "task solved"]
+    assert ImageGoalSpace().key(gray_frame())[0] == "cell"  # cells stay the default
+
+
+@pytest.mark.parametrize("landmarks, fraction, message", [
+    ([(0, 0, 10, 21)], 0.2, r"landmark 0 \(0, 0, 10, 21\) lies outside the 20x20 frame"),
+    ([(0, 0, 5, 5), (-1, 0, 5, 5)], 0.2, r"landmark 1 .* lies outside"),
+    ([(5, 0, 5, 5)], 0.2, r"landmark 0 \(5, 0, 5, 5\) is empty or inverted.*row0 < row1"),
+    ([(0, 8, 5, 2)], 0.2, "empty or inverted"),
+    ([(0, 0, 5)], 0.2, r"four integers \(row0, col0, row1, col1\)"),
+    ([(0, 0, 5, 5.5)], 0.2, "four integers"),
+    ([], 0.2, "at least one box"),
+    ([(0, 0, 5, 5)], 0.0, r"changed_fraction must be in \(0, 1\].*got 0.0"),
+    ([(0, 0, 5, 5)], 1.5, r"changed_fraction must be in \(0, 1\]"),
+    ([(0, 0, 5, 5)], -0.2, r"changed_fraction must be in \(0, 1\]"),
+])
+def test_bad_landmarks_are_refused_with_what_to_fix(landmarks: list, fraction: float, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        ImageGoalSpace(landmarks=landmarks, reference=gray_frame(), changed_fraction=fraction)
+
+
+def test_landmarks_need_a_reference_of_the_env_frames_shape() -> None:
+    with pytest.raises(ValueError, match="need a reference frame.*env.reset"):
+        ImageGoalSpace(landmarks=[(0, 0, 5, 5)])
+    with pytest.raises(ValueError, match="give landmarks too"):
+        ImageGoalSpace(reference=gray_frame())
+    space = ImageGoalSpace(landmarks=[(0, 0, 5, 5)], reference=gray_frame())
+    with pytest.raises(ValueError, match=r"reference frame has shape \(20, 20\) but this observation has .*\(40, 40\)"):
+        space.key(np.zeros((40, 40, 1), np.uint8))
+    with pytest.raises(ValueError, match=r"\(20, 20\) but the env observes frames of shape \(40, 40\)"):
+        space.bind(PixelRoom())
+    room = PixelRoom()
+    bound = ImageGoalSpace(landmarks=[(32, 32, 40, 40)], reference=room.reset()[0])
+    bound.bind(room)
+    assert bound.key(room.reset()[0]) == ("landmarks", ())
+
+
+def test_landmarks_on_montezuma_frames_under_atari_wrapper() -> None:
+    """84x84 AtariWrapper frames, the reference the first after a reset: a box at the middle ladder's foot is attained
+    once the agent climbed down to it, not at the start; a box at the key, far from the agent, is not."""
+    ale_py = pytest.importorskip("ale_py", reason='needs the [atari] extra: pip install "sb3_hhp[atari]"')
+    from stable_baselines3.common.atari_wrappers import AtariWrapper
+
+    gym.register_envs(ale_py)
+    env = AtariWrapper(gym.make("ALE/MontezumaRevenge-v5", frameskip=1, repeat_action_probability=0.0), noop_max=0,
+                       terminal_on_life_loss=False)
+    reference, _ = env.reset(seed=0)
+    space = ImageGoalSpace(landmarks=[(44, 40, 53, 45), (34, 3, 42, 9)], reference=reference)
+    space.bind(env)
+    assert space.key(reference) == ("landmarks", ())
+    for _ in range(11):  # down the middle ladder (y 251 -> 192 in the RAM)
+        obs, *_ = env.step(5)
+    assert env.unwrapped.ale.getRAM()[43] == 192
+    assert space.key(obs) == ("landmarks", (0,)) and space.changed(obs)[0] > 0.5

@@ -28,6 +28,10 @@ class GoalSpace(ABC):
     def supports(cls, env: gym.Env) -> bool:
         """Whether this goal space can be used with ``env`` (its observation space and base env)."""
 
+    def bind(self, env: gym.Env) -> None:
+        """Learn once what this goal space needs of the env it serves (an env it :meth:`supports`), and check its
+        settings against it; raises ``ValueError`` when they do not fit. Default: nothing to learn."""
+
     @abstractmethod
     def key(self, obs: np.ndarray) -> Hashable:
         """The sub-goal key of an observation (the situation it shows)."""

@@ -8,11 +8,20 @@ key when they look alike at that coarse scale, which makes keys recur, visits co
 several times") and ``done(s, g)`` a key comparison. The discovery gate compares the frames themselves
 with SSIM (the paper's similarity, section 5.1), and people see the frame.
 
+*Landmarks* (``landmarks=[(row0, col0, row1, col1), ...]``) are the paper's sub-goal detector for Atari (section 5.1,
+after hg-DAgger, Le et al., 2018): each landmark is a box of the frame, *attained* where at least
+``changed_fraction`` (20 %) of its pixels differ from a fixed ``reference`` frame. The key of a state is then the set
+of landmarks it attains, and a sub-goal, a set of landmarks, is reached where all of them are attained. The
+reference is one frame for the whole run (hg-DAgger's detector compares with the game's first screen), not the frame
+where the option began: ``done(s, g)`` must be a function of the state alone, since the sub-goal learners' shared
+replay decides it from each transition's key for every sub-goal when a batch is drawn.
+
 Observations: ``(H, W)``, ``(H, W, C)`` or ``(C, H, W)`` uint8 images (SB3's image-space test). Three
 channels are read as RGB; any other channel count as a stack of grayscale frames, oldest first (SB3's
 ``VecFrameStack``, gymnasium's ``FrameStackObservation``), whose last frame is the current one.
 """
 
+import math
 import zlib
 from collections.abc import Hashable, Sequence
 from typing import Optional
@@ -35,21 +44,72 @@ def _channels_first(shape: tuple) -> bool:
 
 
 class ImageGoalSpace(GoalSpace):
-    """Sub-goal key = the frame shrunk to ``cell_shape`` and quantised to ``levels`` gray levels.
+    """Sub-goal key = the frame shrunk to ``cell_shape`` and quantised to ``levels`` gray levels; with ``landmarks``,
+    the landmarks (detector boxes) whose pixels changed from ``reference``.
 
     :param cell_shape: (height, width) of the cell; Go-Explore's Montezuma cells are 8 x 11
     :param levels: gray levels of the cell (2-256); fewer levels and smaller cells merge more states
+    :param landmarks: detector boxes ``(row0, col0, row1, col1)`` in pixels of the frame the goal space reads (84x84 under
+        SB3's ``AtariWrapper``): rows ``row0`` to ``row1 - 1`` and columns ``col0`` to ``col1 - 1``, as numpy slices.
+        None (the default): cells
+    :param reference: with ``landmarks``, the frame the boxes are compared with: an observation of the env (e.g. its
+        first after a reset), read as every observation is (the last frame of a stack)
+    :param changed_fraction: share in (0, 1] of a box's pixels that must differ from ``reference`` for its landmark to be
+        attained; the paper's 0.2. A pixel differs when its value (any channel of an RGB frame) does
     """
 
     name = "image"
+    #: the detector boxes (None: cells); class defaults for goal spaces pickled before landmarks existed
+    landmarks: Optional[tuple[tuple[int, int, int, int], ...]] = None
+    reference: Optional[np.ndarray] = None
+    changed_fraction = 0.2
 
-    def __init__(self, cell_shape: tuple[int, int] = (8, 11), levels: int = 8) -> None:
+    def __init__(self, cell_shape: tuple[int, int] = (8, 11), levels: int = 8,
+                 landmarks: Optional[Sequence[Sequence[int]]] = None, reference: Optional[np.ndarray] = None,
+                 changed_fraction: float = 0.2) -> None:
         if len(cell_shape) != 2 or min(cell_shape) < 1:
             raise ValueError(f"cell_shape must be (height, width) with both >= 1, got {cell_shape}")
         if not 2 <= levels <= 256:
             raise ValueError(f"levels must be in [2, 256], got {levels}")
         self.cell_shape = (int(cell_shape[0]), int(cell_shape[1]))
         self.levels = int(levels)
+        if not 0 < changed_fraction <= 1:
+            raise ValueError(f"changed_fraction must be in (0, 1] (the share of a landmark box's pixels that must change), "
+                             f"got {changed_fraction}")
+        self.changed_fraction = float(changed_fraction)
+        if landmarks is None:
+            if reference is not None:
+                raise ValueError("reference is the frame landmark boxes are compared with: give landmarks too, or leave "
+                                 "reference out for cells")
+            return
+        if reference is None:
+            raise ValueError("landmarks need a reference frame to compare their boxes with: pass reference= an "
+                             "observation of the env, e.g. env.reset()[0]")
+        self.reference = np.array(self.frame(reference), dtype=np.uint8, copy=True)
+        self.landmarks = self._check_boxes(landmarks, self.reference.shape[:2])
+        # the fewest changed pixels that attain each box: changed >= changed_fraction * area
+        self._needed = tuple(max(1, math.ceil(self.changed_fraction * (r1 - r0) * (c1 - c0) - 1e-9))
+                             for r0, c0, r1, c1 in self.landmarks)
+
+    @staticmethod
+    def _check_boxes(landmarks: Sequence[Sequence[int]], size: tuple[int, int]) -> tuple[tuple[int, int, int, int], ...]:
+        height, width = size
+        if len(landmarks) == 0:
+            raise ValueError("landmarks must hold at least one box (row0, col0, row1, col1); leave it out for cells")
+        boxes = []
+        for index, box in enumerate(landmarks):
+            if len(box) != 4 or not all(isinstance(v, (int, np.integer)) for v in box):
+                raise ValueError(f"landmark {index} must be four integers (row0, col0, row1, col1), got {box!r}")
+            r0, c0, r1, c1 = (int(v) for v in box)
+            if not (r0 < r1 and c0 < c1):
+                raise ValueError(f"landmark {index} {(r0, c0, r1, c1)} is empty or inverted: give (row0, col0, row1, col1) "
+                                 "with row0 < row1 and col0 < col1 (row1 and col1 are excluded, as in a numpy slice)")
+            if r0 < 0 or c0 < 0 or r1 > height or c1 > width:
+                raise ValueError(f"landmark {index} {(r0, c0, r1, c1)} lies outside the {height}x{width} frame: rows must "
+                                 f"be within [0, {height}] and columns within [0, {width}] (boxes are in pixels of the "
+                                 "frame the goal space reads, 84x84 under AtariWrapper)")
+            boxes.append((r0, c0, r1, c1))
+        return tuple(boxes)
 
     @classmethod
     def supports(cls, env: gym.Env) -> bool:
@@ -63,6 +123,16 @@ class ImageGoalSpace(GoalSpace):
             image, ok = space, is_image_space(space, check_channels=False)
         height, width = cls._height_width(image.shape)
         return ok and min(height, width) >= MIN_SIDE
+
+    def bind(self, env: gym.Env) -> None:
+        """Check that the env's frames have the reference's shape, which the landmark boxes were checked against."""
+        if self.landmarks is not None:
+            self._check_frame(self.frame(np.zeros(env.observation_space.shape, dtype=np.uint8)), "the env observes")
+
+    def _check_frame(self, frame: np.ndarray, source: str) -> None:
+        if frame.shape != self.reference.shape:
+            raise ValueError(f"The landmarks' reference frame has shape {self.reference.shape} but {source} frames of shape "
+                             f"{frame.shape}: take the reference from an observation of this env (wrapped as it is)")
 
     @staticmethod
     def _height_width(shape: tuple) -> tuple[int, int]:
@@ -87,11 +157,47 @@ class ImageGoalSpace(GoalSpace):
         small = cv2.resize(np.ascontiguousarray(gray), self.cell_shape[::-1], interpolation=cv2.INTER_AREA)
         return (small.astype(np.uint16) * self.levels // 256).astype(np.uint8)
 
+    def changed(self, obs: np.ndarray) -> np.ndarray:
+        """The share of each landmark box's pixels that differ from the reference, ``(n_landmarks,)`` in [0, 1]."""
+        frame = self.frame(obs)
+        self._check_frame(frame, "this observation has")
+        return np.array([self._changed_pixels(frame, box) / ((box[2] - box[0]) * (box[3] - box[1]))
+                         for box in self.landmarks])
+
+    def _changed_pixels(self, frame: np.ndarray, box: tuple[int, int, int, int]) -> int:
+        r0, c0, r1, c1 = box
+        differs = frame[r0:r1, c0:c1] != self.reference[r0:r1, c0:c1]
+        return int(np.count_nonzero(differs.any(axis=-1) if differs.ndim == 3 else differs))
+
+    def attained(self, obs: np.ndarray) -> tuple[int, ...]:
+        """The landmarks an observation attains, by index: at least ``changed_fraction`` of the box's pixels changed."""
+        frame = self.frame(obs)
+        self._check_frame(frame, "this observation has")
+        return tuple(index for index, (box, needed) in enumerate(zip(self.landmarks, self._needed))
+                     if self._changed_pixels(frame, box) >= needed)
+
     def key(self, obs: np.ndarray) -> Hashable:
+        if self.landmarks is not None:
+            return ("landmarks", self.attained(obs))
         return ("cell", self.cell(obs).tobytes())
 
+    @staticmethod
+    def _is_landmarks(key: Hashable) -> bool:
+        return isinstance(key, tuple) and len(key) == 2 and key[0] == "landmarks"
+
+    def achieved(self, key: Hashable, goal_key: Hashable) -> bool:
+        """``done(s, g)``: every landmark of the sub-goal is attained in the state (the paper's rule for each box;
+        the sub-goal of no landmark, where none is); cells and "task solved": equal keys."""
+        if self._is_landmarks(key) and self._is_landmarks(goal_key) and goal_key[1]:
+            return set(goal_key[1]) <= set(key[1])
+        return key == goal_key
+
     def similarity(self, key: Hashable, obs: np.ndarray, goal_keys: Sequence[Hashable], goal_obs: np.ndarray) -> np.ndarray:
-        """SSIM of the candidate's frame with each stored sub-goal's frame, clipped to [0, 1]; 1 for an equal key."""
+        """SSIM of the candidate's frame with each stored sub-goal's frame, clipped to [0, 1]; 1 for an equal key.
+        With landmarks: 1 for an equal key, else 0 (the landmarks attained are all the detector says of a state;
+        two frames of one room are alike by SSIM wherever the agent stands)."""
+        if self.landmarks is not None:
+            return super().similarity(key, obs, goal_keys, goal_obs)
         if len(goal_keys) == 0:
             return np.zeros(0, dtype=np.float64)
         frames = np.stack([self.frame(o) for o in np.asarray(goal_obs)])
@@ -109,4 +215,8 @@ class ImageGoalSpace(GoalSpace):
             return "task solved"
         if isinstance(key, tuple) and len(key) == 2 and key[0] == "cell":
             return f"cell {zlib.crc32(key[1]):08x}"
+        if self._is_landmarks(key):
+            if not key[1]:
+                return "no landmark"
+            return ("landmark " if len(key[1]) == 1 else "landmarks ") + ", ".join(str(index) for index in key[1])
         return str(key)
