@@ -10,6 +10,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from sb3_hhp import HhP
 from sb3_hhp.goals import SUCCESS_KEY, ImageGoalSpace, MiniGridGoalSpace, make_goal_space, wrap_env
 from sb3_hhp.goals.similarity import ssim_to_set
+from sb3_hhp.oracles.registry import make_oracle
 from sb3_hhp.oracles.synthetic import SyntheticOracle
 
 
@@ -234,7 +235,9 @@ def test_landmarks_need_a_reference_of_the_env_frames_shape() -> None:
     room = PixelRoom()
     bound = ImageGoalSpace(landmarks=[(32, 32, 40, 40)], reference=room.reset()[0])
     bound.bind(room)
-    assert bound.key(room.reset()[0]) == ("landmarks", ())
+    assert bound.game is None and bound.snapshot(room) == {} and bound.facts(bound.snapshot(room)) == {}
+    with pytest.raises(ValueError, match="no scripted oracle for the 'image' goal space on this env"):
+        make_oracle("scripted", bound, room.observation_space)
 
 
 def test_landmarks_on_montezuma_frames_under_atari_wrapper() -> None:
@@ -249,7 +252,7 @@ def test_landmarks_on_montezuma_frames_under_atari_wrapper() -> None:
     reference, _ = env.reset(seed=0)
     space = ImageGoalSpace(landmarks=[(44, 40, 53, 45), (34, 3, 42, 9)], reference=reference)
     space.bind(env)
-    assert space.key(reference) == ("landmarks", ())
+    assert space.game == "montezuma_revenge" and space.key(reference) == ("landmarks", ())
     for _ in range(11):  # down the middle ladder (y 251 -> 192 in the RAM)
         obs, *_ = env.step(5)
     assert env.unwrapped.ale.getRAM()[43] == 192

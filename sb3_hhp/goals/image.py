@@ -19,12 +19,16 @@ replay decides it from each transition's key for every sub-goal when a batch is 
 Observations: ``(H, W)``, ``(H, W, C)`` or ``(C, H, W)`` uint8 images (SB3's image-space test). Three
 channels are read as RGB; any other channel count as a stack of grayscale frames, oldest first (SB3's
 ``VecFrameStack``, gymnasium's ``FrameStackObservation``), whose last frame is the current one.
+
+On ALE Montezuma's Revenge the goal space records a few bytes of the console's RAM at each sub-goal choice
+(:meth:`ImageGoalSpace.snapshot`: the room, the agent's position, the inventory, the objects, the lives), the facts
+:class:`~sb3_hhp.oracles.montezuma.MontezumaScriptedOracle` answers from; its module says how each address was verified.
 """
 
 import math
 import zlib
 from collections.abc import Hashable, Sequence
-from typing import Optional
+from typing import Any, Optional
 
 import cv2
 import gymnasium as gym
@@ -37,10 +41,32 @@ from sb3_hhp.goals.similarity import ssim_to_set
 
 #: smallest image side accepted (smaller "images" are better served by a goal space of their own)
 MIN_SIDE = 8
+#: the ROM name ale-py gives Montezuma's Revenge
+MONTEZUMA = "montezuma_revenge"
+#: the RAM bytes recorded on Montezuma's Revenge, by fact (verified in :mod:`sb3_hhp.oracles.montezuma`)
+MONTEZUMA_RAM = {"room": 3, "x": 42, "y": 43, "inventory": 65, "room_objects": 66, "first_room_objects": 67,
+                 "lives": 58, "death_timer": 55}
+_MONTEZUMA_ADDRESSES = np.array(list(MONTEZUMA_RAM.values()), dtype=np.int64)
 
 
 def _channels_first(shape: tuple) -> bool:
     return len(shape) == 3 and is_image_space_channels_first(spaces.Box(0, 255, shape, np.uint8))
+
+
+def ale_game(env: gym.Env) -> Optional[str]:
+    """The ROM name of the ALE game underneath ``env`` (``"montezuma_revenge"``), None when it is not an ALE env."""
+    base = getattr(env, "unwrapped", env)
+    if not type(base).__module__.startswith("ale_py") or not hasattr(base, "ale"):
+        return None
+    return getattr(base, "_game", None)
+
+
+def montezuma_facts(ram: np.ndarray) -> dict[str, Any]:
+    """The facts of a Montezuma's Revenge state from its 128 bytes of RAM (or from the bytes of
+    :data:`MONTEZUMA_RAM` alone, in that order), as JSON values."""
+    ram = np.frombuffer(ram, dtype=np.uint8) if isinstance(ram, bytes) else np.asarray(ram, dtype=np.uint8)
+    values = ram[_MONTEZUMA_ADDRESSES] if len(ram) == 128 else ram
+    return {"game": MONTEZUMA, **{name: int(value) for name, value in zip(MONTEZUMA_RAM, values)}}
 
 
 class ImageGoalSpace(GoalSpace):
@@ -63,6 +89,8 @@ class ImageGoalSpace(GoalSpace):
     landmarks: Optional[tuple[tuple[int, int, int, int], ...]] = None
     reference: Optional[np.ndarray] = None
     changed_fraction = 0.2
+    #: the ALE game of the env this goal space was bound to (:meth:`bind`; None: not an ALE env, or not bound)
+    game: Optional[str] = None
 
     def __init__(self, cell_shape: tuple[int, int] = (8, 11), levels: int = 8,
                  landmarks: Optional[Sequence[Sequence[int]]] = None, reference: Optional[np.ndarray] = None,
@@ -125,7 +153,9 @@ class ImageGoalSpace(GoalSpace):
         return ok and min(height, width) >= MIN_SIDE
 
     def bind(self, env: gym.Env) -> None:
-        """Check that the env's frames have the reference's shape, which the landmark boxes were checked against."""
+        """Record the env's ALE game (:attr:`game`: a Montezuma's Revenge env gets its scripted oracle) and check that
+        its frames have the reference's shape, which the landmark boxes were checked against."""
+        self.game = ale_game(env)
         if self.landmarks is not None:
             self._check_frame(self.frame(np.zeros(env.observation_space.shape, dtype=np.uint8)), "the env observes")
 
@@ -204,6 +234,21 @@ class ImageGoalSpace(GoalSpace):
         values = np.clip(ssim_to_set(self.frame(obs), frames), 0.0, 1.0)
         values[[other == key for other in goal_keys]] = 1.0
         return values
+
+    def privileged(self, env: gym.Env) -> dict[str, Any]:
+        """Montezuma's Revenge: its RAM facts (:func:`montezuma_facts`); other envs: none."""
+        snapshot = self.snapshot(env)
+        return self.facts(snapshot)
+
+    def snapshot(self, env: gym.Env) -> Any:
+        """Montezuma's Revenge: the bytes of :data:`MONTEZUMA_RAM` (8 bytes, read in about a microsecond); other envs:
+        an empty dict (no facts)."""
+        if ale_game(env) != MONTEZUMA:
+            return {}
+        return env.unwrapped.ale.getRAM()[_MONTEZUMA_ADDRESSES].tobytes()
+
+    def facts(self, snapshot: Any) -> dict[str, Any]:
+        return montezuma_facts(snapshot) if isinstance(snapshot, bytes) else dict(snapshot)
 
     def image_of(self, obs: np.ndarray) -> Optional[np.ndarray]:
         """The current frame as RGB (H, W, 3)."""

@@ -3,6 +3,7 @@
 from sb3_hhp.oracles.base import Answer, Label, Oracle, Query
 from sb3_hhp.oracles.experts import MultiExpertOracle
 from sb3_hhp.oracles.fetch import FetchScriptedOracle
+from sb3_hhp.oracles.montezuma import MontezumaScriptedOracle
 from sb3_hhp.oracles.noisy import NoisyOracle
 from sb3_hhp.oracles.registry import ORACLE_NAMES, make_oracle
 from sb3_hhp.oracles.scripted import MiniGridScriptedOracle
@@ -15,6 +16,7 @@ __all__ = [
     "FetchScriptedOracle",
     "Label",
     "MiniGridScriptedOracle",
+    "MontezumaScriptedOracle",
     "MultiExpertOracle",
     "NoisyOracle",
     "Oracle",

@@ -5,6 +5,7 @@ from typing import Any, Optional
 from gymnasium import spaces
 
 from sb3_hhp.goals.base import GoalSpace
+from sb3_hhp.goals.image import MONTEZUMA
 from sb3_hhp.oracles.base import Oracle
 
 #: the names :func:`make_oracle` builds an oracle from
@@ -22,7 +23,8 @@ def make_oracle(
     """Build the oracle called ``name`` for a goal space.
 
     :param name: one of :data:`~sb3_hhp.oracles.registry.ORACLE_NAMES`
-    :param goal_space: the goal space of the task (decides which scripted oracle applies)
+    :param goal_space: the goal space of the task (decides which scripted oracle applies: MiniGrid's, Fetch's, or
+        Montezuma's Revenge's for an :class:`~sb3_hhp.goals.image.ImageGoalSpace` bound to it)
     :param observation_space: observations the synthetic oracle's network reads
     :param store: the preference store (the web oracle's queue)
     :param seed: seed of random oracles
@@ -45,6 +47,17 @@ def make_oracle(
             from sb3_hhp.oracles.fetch import FetchScriptedOracle
 
             oracle = FetchScriptedOracle(**kwargs)
+        elif goal_space.name == "image" and getattr(goal_space, "game", None) == MONTEZUMA:
+            from sb3_hhp.oracles.montezuma import MontezumaScriptedOracle
+
+            oracle = MontezumaScriptedOracle(**kwargs)
+        elif goal_space.name == "image":
+            game = getattr(goal_space, "game", None)
+            served = f"the ALE game {game!r}" if game else "this env (not an ALE game, or a goal space not bound to one)"
+            raise ValueError(
+                f"There is no scripted oracle for the 'image' goal space on {served}: only ALE Montezuma's Revenge has "
+                "one (an ImageGoalSpace bound to it, ImageGoalSpace.bind(env)); use 'synthetic', 'web' or 'terminal'"
+            )
         else:
             raise ValueError(
                 f"There is no scripted oracle for the {goal_space.name!r} goal space: use 'synthetic', 'web' or 'terminal'"
