@@ -1442,3 +1442,57 @@ def test_the_facts_questions_carry_are_recorded_only_while_questions_can_be_aske
     with_budget = make_model(query_budget=1_000)
     with_budget.learn(600)
     assert with_budget.options.record_privileged and all("grid" in facts for facts in with_budget._last_trace.high_privileged)
+
+
+# ---------------------------------------------------------------------------- discount per primitive step
+
+
+def test_with_discount_steps_an_option_is_discounted_by_its_primitive_steps(tmp_path) -> None:
+    """meta_kwargs discount="steps": R_e = sum_i gamma^i r_i over the option's steps and the bootstrap gamma^k (the
+    semi-MDP's); "choice" (the default) keeps the plain sum and gamma per choice."""
+    gamma = 0.9
+    model = make_model(gamma=gamma, meta_kwargs=dict(discount="steps"))
+    model.learn(1_500)
+    runner, buffer = model.options, model.replay_buffer
+    assert runner.return_discount == gamma and make_model().options.return_discount is None
+    # the runner's return: each of an option's rewards weighs gamma^i, i its step in the option
+    obs = runner.reset()
+    here = model.goal_space.key(obs[0])
+    far = next(g for g, key in enumerate(model.subgoal_set.keys) if not model.goal_space.achieved(here, key))
+    runner.start(np.array([0]), np.array([far]))
+    rewards = iter([0.5, 1.0, 2.0])
+    step = runner.venv.step
+
+    def rewarded(actions: np.ndarray) -> Any:
+        obs, _, dones, infos = step(actions)
+        return obs, np.array([next(rewards, 0.0)], dtype=np.float32), dones, infos
+
+    runner.venv.step = rewarded
+    taken = 0
+    while taken < 3 and runner.goals[0] >= 0:  # the option's steps, until it ends (its return stays until the next)
+        runner.step()
+        taken += 1
+    assert taken >= 2  # a weight below 1 is tested
+    assert runner.option_returns[0] == pytest.approx(sum(gamma**i * r for i, r in enumerate([0.5, 1.0, 2.0][:taken])))
+    runner.venv.step = step
+    # the bootstrap: gamma^k of the stored choice's k primitive steps
+    size = buffer.size()
+    steps = model._choice_steps[:size]
+    assert steps.min() >= 1 and steps.max() > 1  # options of different lengths were stored
+    batch = buffer.sample(64)
+    rows = np.asarray(batch.indices) // buffer.n_envs
+    np.testing.assert_allclose(model._discounts(batch).cpu().numpy().ravel(), gamma ** steps[rows].astype(np.float64),
+                               rtol=1e-6)
+    assert make_model(gamma=gamma)._discounts(batch) == gamma  # per choice
+    # kept with the replay
+    model.save(tmp_path / "model")
+    model.save_replay_buffer(tmp_path / "replay")
+    loaded = HhP.load(tmp_path / "model")
+    assert loaded.meta_discount == "steps"
+    loaded.load_replay_buffer(tmp_path / "replay")
+    np.testing.assert_array_equal(loaded._choice_steps[:size], steps)
+
+
+def test_an_unknown_discount_is_refused() -> None:
+    with pytest.raises(ValueError, match="discount.*'choice', 'steps'"):
+        make_model(meta_kwargs=dict(discount="primitive"))

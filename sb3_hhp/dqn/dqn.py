@@ -240,6 +240,11 @@ class DoubleDQN(DQN):
             raise ValueError("valid_actions must allow at least one action, got an all-False mask")
         self._valid_actions = mask.copy()
 
+    def _discounts(self, replay_data: ReplayBufferSamples | PrioritizedReplayBufferSamples) -> float | th.Tensor:
+        """The bootstrap's discount of each sampled transition: ``gamma^n`` of an n-step return (when no early
+        termination), else ``gamma``."""
+        return replay_data.discounts if replay_data.discounts is not None else self.gamma
+
     def _rewards(self, replay_data: ReplayBufferSamples | PrioritizedReplayBufferSamples) -> th.Tensor:
         """
         Reward column used in the TD target, shape ``(B, 1)``.
@@ -311,8 +316,7 @@ class DoubleDQN(DQN):
         losses, td_errors_abs, weights_mean = [], [], []
         for _ in range(gradient_steps):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-            # For n-step replay, discount factor is gamma**n_steps (when no early termination)
-            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+            discounts = self._discounts(replay_data)
 
             with th.no_grad():
                 target_q_values = self._target(replay_data.next_observations, self._rewards(replay_data),

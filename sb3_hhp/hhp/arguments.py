@@ -56,11 +56,13 @@ SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(kind=None, exploration_steps=5_0
 #: ``max_grad_norm``, ``stats_window_size`` (SB3's), the head's initial ``capacity`` (it doubles when full), what it
 #: reads (``input``, as the predictor's), how the preference bonus is centred (``center_bonus``), whether the bonus is
 #: added to its Q-values exactly (``exact_bonus``), how the task's own goal is paid (``success_bonus``), whether it
-#: chooses only choosable sub-goals (``mask_subgoals``) and whether ``predict`` breaks cycles (``break_cycles``)
+#: chooses only choosable sub-goals (``mask_subgoals``), whether ``predict`` breaks cycles (``break_cycles``) and what
+#: ``gamma`` discounts (``discount``): each sub-goal choice ("choice", the paper's DQN over choices) or each primitive
+#: step ("steps": an option's return is sum_i gamma^i r_i and its bootstrap gamma^k after its k steps, the semi-MDP's)
 META_DEFAULTS: dict[str, Any] = dict(n_opt=4, target_update_interval=500, tau=1.0, exploration_initial_eps=1.0,
                                      max_grad_norm=10.0, stats_window_size=100, capacity=16, input="auto",
                                      center_bonus="max", exact_bonus=False, success_bonus="predicted",
-                                     mask_subgoals=True, break_cycles=True)
+                                     mask_subgoals=True, break_cycles=True, discount="choice")
 #: each ``*_kwargs`` argument grouped over defaults: its defaults and the keys it accepts (None: the defaults' keys)
 GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
     "query_kwargs": (QUERY_DEFAULTS, None),
@@ -78,6 +80,7 @@ CHOICES: dict[tuple[str, str], tuple] = {
     ("meta_kwargs", "center_bonus"): (True, False, "mean", "max"),
     ("meta_kwargs", "exact_bonus"): (True, False),
     ("meta_kwargs", "success_bonus"): ("predicted", "best"),
+    ("meta_kwargs", "discount"): ("choice", "steps"),
 }
 
 

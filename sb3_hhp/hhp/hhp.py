@@ -186,6 +186,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
     success_bonus = _Grouped("meta_kwargs", "success_bonus")
     mask_subgoals = _Grouped("meta_kwargs", "mask_subgoals")
     break_cycles = _Grouped("meta_kwargs", "break_cycles")
+    meta_discount = _Grouped("meta_kwargs", "discount")
     meta_input = _Grouped("meta_kwargs", "input")
     predictor_input = _Grouped("predictor_kwargs", "input")
     discovery_strategy = _Grouped("discovery_kwargs", "strategy")
@@ -355,6 +356,8 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
             super()._setup_model()
         finally:
             self.n_envs = n_envs
+        #: the primitive steps of the choice in each row of R_H (``meta_kwargs["discount"] == "steps"`` discounts by them)
+        self._choice_steps = np.ones(self.replay_buffer.buffer_size, dtype=np.int32)
         device = get_device(self.device)
         obs_space = self.primitive_observation_space
         self.rnd = RND(obs_space, device=device, seed=self.seed, **self.rnd_kwargs) if self.use_curiosity else None
@@ -438,6 +441,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
     def _attach(self, options: OptionRunner) -> None:
         options.learners, options.rnd, options.subgoals = self.subpolicies, self.rnd, self.subgoal_set
         options.record_images = bool(self.record_images)
+        options.return_discount = self.gamma if self.meta_discount == "steps" else None
         if not self.subgoal_set.goals:
             for goal_obs in self.initial_subgoals:
                 self.add_subgoal(self.goal_space.key(goal_obs), goal_obs, None, source="user")
@@ -481,6 +485,15 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         mask = np.arange(self.action_space.n) < n_goals
         self.valid_actions = mask if n_goals > 0 else None
         self._mask_cache = {}
+
+    def _discounts(self, replay_data: Any) -> Union[float, th.Tensor]:
+        """``gamma`` per choice, or (``meta_kwargs["discount"] == "steps"``) ``gamma^k`` for a choice whose option took
+        k primitive steps: the semi-MDP's bootstrap, under which an option that ends sooner is not paid for it."""
+        if self.meta_discount == "choice":
+            return super()._discounts(replay_data)
+        rows = np.asarray(replay_data.indices) // self.replay_buffer.n_envs
+        discounts = np.power(self.gamma, self._choice_steps[rows], dtype=np.float64).astype(np.float32)
+        return th.as_tensor(discounts, device=replay_data.rewards.device).reshape(-1, 1)
 
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
         """N_opt meta-controller updates for each episode that just ended (Algorithm 1 lines 30-34), once the meta
@@ -549,6 +562,8 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
             info = {"TimeLimit.truncated": option.truncated and not option.terminated}
             if getattr(self, "_bonus_valid", None) is not None and replay_buffer is self.replay_buffer:
                 self._bonus_valid[replay_buffer.pos] = False  # the row's cached bonus belongs to the choice it held
+            if replay_buffer is self.replay_buffer:
+                self._choice_steps[replay_buffer.pos] = max(1, option.steps)
             replay_buffer.add(obs, next_obs, np.array([[option.goal]]),
                               np.array([option.extrinsic_return], dtype=np.float32), np.array([done]), [info])
             self._on_step()
@@ -642,7 +657,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
             "options", "subgoal_set", "_last_trace", "rnd", "predictor", "query_selector", "return_normalizer", "subpolicies", "discovery",
             "store", "subgoal_table", "oracle", "oracle_spec", "pending_queries", "recent_choices", "last_predictor_stats",
             "last_confidences", "consumed_query_ids", "initial_subgoals", "_asked_signatures", "_asked_goal_keys", "_mask_cache", "_present_cache",
-            "_bonus_key", "_bonus_cache", "_bonus_valid", "_unscored", "_primitive_env",
+            "_bonus_key", "_bonus_cache", "_bonus_valid", "_choice_steps", "_unscored", "_primitive_env",
             *(["learn"] if "learn" in vars(self) else []),  # a bound learn (sb3_hhp.train --resume) is no data of the model
         ]
 
@@ -745,9 +760,11 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         ``sb3_hhp.train --checkpoint-freq``). Only the rows in use are written."""
         assert self.replay_buffer is not None, "The replay buffer is not defined"
         meta = self.replay_buffer
+        rows = meta.buffer_size if meta.full else meta.pos
         save_to_pkl(path, {
             "format": REPLAY_FORMAT,
-            "meta": buffer_state(meta, meta.buffer_size, meta.buffer_size if meta.full else meta.pos),
+            "meta": buffer_state(meta, meta.buffer_size, rows),
+            "choice_steps": self._choice_steps[:rows].copy(),
             "subgoal_learners": self.subpolicies.replay_state(),
         }, self.verbose)
 
@@ -763,14 +780,18 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
             raise ValueError(f"{path} cannot be read as a saved replay ({type(error).__name__}: {error}): a damaged or "
                              "truncated file? Save it again with HhP.save_replay_buffer") from error
         if isinstance(data, ReplayBuffer):
-            super().load_replay_buffer(path, truncate_last_traj)  # SB3's file: R_H only
+            super().load_replay_buffer(path, truncate_last_traj)  # SB3's file: R_H only, its choices' steps unknown (1)
             self._bonus_key = None
+            self._choice_steps[:] = 1
             return
         if not isinstance(data, dict) or data.get("format") != REPLAY_FORMAT:
             raise ValueError(f"{path} is not a replay saved by HhP.save_replay_buffer (nor an SB3 replay buffer)")
         self.subpolicies.load_replay_state(data["subgoal_learners"], truncate_last_traj)
         meta = self.replay_buffer
         load_buffer_state(meta, data["meta"], meta.buffer_size, "the meta-controller's replay R_H")
+        steps = np.asarray(data.get("choice_steps", ()), dtype=np.int32)
+        self._choice_steps[:] = 1
+        self._choice_steps[:len(steps)] = steps
         meta.device = self.device
         self._bonus_key = None  # the cached preference bonuses belonged to the rows held before
 

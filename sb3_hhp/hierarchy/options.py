@@ -167,13 +167,18 @@ class OptionRunner:
     :param learn: store every transition in the learners' replay, curiosity, visits and the episodes' traces (False:
         the learners only act, frozen, as in :class:`~sb3_hhp.hierarchy.semi_mdp.HierarchicalEnv`)
     :param deterministic: the learners act greedily (else epsilon-greedy, or with their action noise)
+    :param return_discount: an option's return R_e is ``sum_i return_discount^i r_i`` over its primitive steps (None:
+        the plain sum, the paper's)
     """
 
     def __init__(self, venv: VecEnv, goal_space: GoalSpace, subgoals: SubgoalSet, learners: Any, rnd: Optional[RND],
                  max_subgoal_steps: int = 50, record_images: bool = False, learn: bool = True,
-                 deterministic: bool = False) -> None:
+                 deterministic: bool = False, return_discount: Optional[float] = None) -> None:
         if max_subgoal_steps < 1:
             raise ValueError(f"max_subgoal_steps must be >= 1, got {max_subgoal_steps}")
+        if return_discount is not None and not 0.0 <= return_discount <= 1.0:
+            raise ValueError(f"return_discount must be in [0, 1] or None, got {return_discount}")
+        self.return_discount = return_discount
         self.venv = check_vec_env(venv)
         self.goal_space, self.subgoals, self.learners, self.rnd = goal_space, subgoals, learners, rnd
         self.max_subgoal_steps = max_subgoal_steps
@@ -256,7 +261,10 @@ class OptionRunner:
         goal_space = self.goal_space
         keys = [goal_space.terminal_key(final_obs[i], float(rewards[i]), bool(terminated[i])) for i in range(n)]
         self.steps[pursuing] += 1
-        self.option_returns += rewards
+        if self.return_discount is None:
+            self.option_returns += rewards
+        else:  # the option's i-th step (i from 0) weighs return_discount^i; an env without a sub-goal counts as step 0
+            self.option_returns += rewards * self.return_discount ** np.maximum(self.steps - 1, 0)
         self.episode_returns += rewards
         achieved = np.zeros(n, dtype=bool)
         gave_up = np.zeros(n, dtype=bool)
