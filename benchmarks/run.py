@@ -13,22 +13,28 @@ Variants:
   names its own ``--oracle`` has that one instead of ``scripted``);
 - ``dqn``, ``ppo``: SB3's DQN and PPO, flat, on the observation HhP sees (:func:`sb3_hhp.goals.wrap_env`);
 - ``ppo_rnd``: PPO with RND's intrinsic reward added to the env's (:class:`sb3_hhp.curiosity.VecRNDReward`),
-  the paper's baseline.
+  the paper's baseline;
+- ``ddpg_her``, ``tqc_her``: SB3's DDPG and sb3-contrib's TQC with SB3's ``HerReplayBuffer`` (the paper's HER, and
+  RL Zoo's strongest Fetch entry), on the env's own dict observation (``MultiInputPolicy``: observation,
+  achieved and desired goal), not HhP's flat one;
+- ``ddpg``: DDPG on the same dict observation, without hindsight (the paper's DDPG row).
 
 The baselines take their settings from ``baselines_conf`` (default ``sb3_hhp/hyperparams/baselines.yml``). Every
 variant trains for the sweep's step budget (primitive env steps), then is evaluated the way
 ``sb3_hhp.train`` evaluates HhP (:func:`sb3_hhp.train.evaluate`): ``eval_episodes`` fresh envs seeded
 ``seed + 10000``, ``seed + 10001``, ..., with the deterministic and with the stochastic policy. Learning
 curves come from periodic evaluations every ``eval_freq`` steps (``curve_episodes`` episodes each,
-stochastic policy on MiniGrid, as RL Zoo evaluates there), written to ``curves/<run>.csv``.
+stochastic policy on MiniGrid, as RL Zoo evaluates there), written to ``curves/<run>.csv``. Success is the env's
+``info["is_success"]`` at an episode's end where it reports one (Fetch), else a positive return (MiniGrid).
 
 Each experiment runs in a fresh worker process with one torch thread (``--jobs`` at once). The sweep is
 resumable: an experiment whose row is already in ``results.csv`` is skipped, so an interrupted sweep is
 finished by running the same command again; a failed one leaves no row, its log in ``logs/<run>.log``. An HhP
 run writes a checkpoint (model and replays) at every periodic evaluation, and an HhP run that stopped before its
 end goes on from its last checkpoint (``sb3_hhp.train --resume``): a run longer than a session is trained in parts,
-its curve joined from them. The baselines write the same checkpoints (model, DQN's replay, PPO + RND's curiosity
-state) and go on from them the same way. Killing the runner stops its workers and their training processes.
+its curve joined from them. The baselines write the same checkpoints (model, an off-policy baseline's replay, PPO +
+RND's curiosity state, a ``VecNormalize``'s statistics) and go on from them the same way. Killing the runner stops
+its workers and their training processes.
 Output folder (``--out``, default ``benchmarks/results/<name>``)::
 
     results.csv        one row per env x variant x seed
@@ -43,6 +49,7 @@ Sweep file (YAML)::
     envs: [MiniGrid-DoorKey-8x8-v0]
     variants: [hhp, dqn, ppo, ppo_rnd]
     seeds: [0, 1, 2]
+    variant_seeds: {ppo_rnd: [0]}    # optional, the seeds of some variants instead of seeds
     steps: 300000                    # one budget, or a mapping env id -> budget
     eval_episodes: 100               # final evaluation (default 100)
     eval_freq: 10000                 # periodic evaluations, in env steps (default: steps // 20; 0: none)
@@ -70,6 +77,7 @@ import shutil
 import subprocess
 import sys
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Optional, Union
@@ -78,14 +86,41 @@ import yaml
 
 from sb3_hhp.train import CHECKPOINT_FILE, RESUMED_FILE  # the run folders' files the training command writes
 
+
+@dataclasses.dataclass(frozen=True)
+class Baseline:
+    """A flat baseline of the runner: its algorithm and what it reads of the env.
+
+    :param algorithm: the algorithm's class, ``module:Class``
+    :param hhp_observation: it reads the observation HhP sees (:func:`sb3_hhp.goals.wrap_env`: MiniGrid's egocentric
+        view, Fetch's flattened); else the env's own (Fetch: the dict of observation, achieved and desired goal)
+    :param her: it relabels its replay in hindsight: its entry names ``replay_buffer_class: HerReplayBuffer``, and
+        its env must observe a dict goal
+    """
+
+    algorithm: str
+    hhp_observation: bool = True
+    her: bool = False
+
+
+#: the flat baselines, in the order of tables and plots
+BASELINES = {
+    "dqn": Baseline("stable_baselines3:DQN"),
+    "ppo": Baseline("stable_baselines3:PPO"),
+    "ppo_rnd": Baseline("stable_baselines3:PPO"),
+    "ddpg": Baseline("stable_baselines3:DDPG", hhp_observation=False),
+    "ddpg_her": Baseline("stable_baselines3:DDPG", hhp_observation=False, her=True),
+    "tqc_her": Baseline("sb3_contrib:TQC", hhp_observation=False, her=True),
+}
 #: the variants a sweep may name, in the order of tables and plots
-VARIANTS = ("hhp", "dqn", "ppo", "ppo_rnd")
+VARIANTS = ("hhp", *BASELINES)
 #: the keys of a sweep file, with their defaults (None: required or computed)
 SWEEP_KEYS: dict[str, Any] = {
     "name": None,
     "envs": None,
     "variants": None,
     "seeds": None,
+    "variant_seeds": {},
     "steps": None,
     "eval_episodes": 100,
     "eval_freq": None,
@@ -102,8 +137,22 @@ COLUMNS = (
     "labels_used", "eval_episodes", "train_seconds", "wall_seconds", "curve", "summary",
 )
 KEY_COLUMNS = ("env", "variant", "seed", "steps")
-#: keys of a baseline entry read by the runner; the rest go to the algorithm's constructor
-BASELINE_RUNNER_KEYS = ("n_envs", "policy", "vec_rnd")
+#: keys of a baseline entry read by the runner, as RL Zoo reads them (``vec_rnd``: ppo_rnd's curiosity); the rest go
+#: to the algorithm's constructor
+BASELINE_RUNNER_KEYS = ("n_envs", "policy", "vec_rnd", "normalize", "noise_type", "noise_std")
+#: the replay buffers a baseline entry may name (``replay_buffer_class``), by name: ``module:Class``
+REPLAY_BUFFERS = {
+    "ReplayBuffer": "stable_baselines3.common.buffers:ReplayBuffer",
+    "DictReplayBuffer": "stable_baselines3.common.buffers:DictReplayBuffer",
+    "HerReplayBuffer": "stable_baselines3:HerReplayBuffer",
+}
+#: the action noises a baseline entry may name (``noise_type``, with ``noise_std``), RL Zoo's names: ``module:Class``
+ACTION_NOISES = {
+    "normal": "stable_baselines3.common.noise:NormalActionNoise",
+    "ornstein-uhlenbeck": "stable_baselines3.common.noise:OrnsteinUhlenbeckActionNoise",
+}
+#: the keys of a goal env's dict observation, which hindsight relabels (SB3's ``HerReplayBuffer``)
+GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
 #: periodic evaluations per run when the sweep does not set eval_freq
 DEFAULT_CURVE_POINTS = 20
 #: what a run's log folder records of the code each of its parts ran (:func:`code_version`), in order
@@ -183,6 +232,14 @@ def _string_list(value: Any, what: str) -> list[str]:
     return values
 
 
+def _seeds(value: Any, what: str) -> list[int]:
+    """A seed or a non-empty list of seeds (integers >= 0)."""
+    seeds = [_positive_int(seed, what, minimum=0) for seed in (value if isinstance(value, list) else [value])]
+    if not seeds:
+        raise SweepError(f"{what} must list at least one seed")
+    return seeds
+
+
 def _check_file(path: Optional[str], what: str) -> None:
     if path is not None and not os.path.isfile(path):
         raise SweepError(f"{what}: no such file {path!r} (paths are relative to the working directory)")
@@ -240,10 +297,13 @@ def load_sweep(path: Union[str, Path], check_envs: bool = True) -> Sweep:
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             raise SweepError(f"{where}: unknown variant {variant!r}{hint}; use some of {', '.join(known)} "
                              "(more HhP variants are named in hhp_variants)")
-    seeds_value = settings["seeds"] if isinstance(settings["seeds"], list) else [settings["seeds"]]
-    seeds = [_positive_int(seed, f"{where}: seeds", minimum=0) for seed in seeds_value]
-    if not seeds:
-        raise SweepError(f"{where}: seeds must list at least one seed")
+    seeds = _seeds(settings["seeds"], f"{where}: seeds")
+    variant_seeds = settings["variant_seeds"] or {}
+    if not isinstance(variant_seeds, dict) or not all(variant in variants for variant in variant_seeds):
+        raise SweepError(f"{where}: variant_seeds must map some of the sweep's variants ({', '.join(variants)}) to "
+                         f"their seeds, got {variant_seeds!r}")
+    seeds_of = {variant: _seeds(variant_seeds[variant], f"{where}: variant_seeds[{variant}]")
+                if variant in variant_seeds else seeds for variant in variants}
     steps_value = settings["steps"]
     if isinstance(steps_value, dict):
         missing = [env for env in envs if env not in steps_value]
@@ -268,10 +328,13 @@ def load_sweep(path: Union[str, Path], check_envs: bool = True) -> Sweep:
             if variant not in ("hhp", *hhp_variants):
                 for env in envs:
                     baseline_settings(settings["baselines_conf"], variant, env)
+                    if BASELINES[variant].her:
+                        check_goal_observation(variant, env, where)
     sweep = Sweep(
         name=str(settings["name"] or path.stem),
         experiments=tuple(
-            Experiment(env, variant, seed, steps[env]) for env in envs for variant in variants for seed in seeds
+            Experiment(env, variant, seed, steps[env]) for env in envs for variant in variants
+            for seed in seeds_of[variant]
         ),
         eval_episodes=_positive_int(settings["eval_episodes"], f"{where}: eval_episodes", minimum=0),
         eval_freq=eval_freq,
@@ -298,8 +361,10 @@ def baseline_settings(config: str, variant: str, env_id: str) -> dict[str, Any]:
     """The hyperparameters of a flat baseline: ``config[variant]``'s entry for ``env_id``, its domain or ``default``.
 
     :param config: the baselines' YAML file (``sb3_hhp/hyperparams/baselines.yml``)
-    :param variant: ``dqn``, ``ppo`` or ``ppo_rnd``
+    :param variant: one of :data:`BASELINES`
     :param env_id: a registered env id
+    :raises SweepError: no entry, or one that names what the runner cannot build (a replay buffer or action noise not
+        in :data:`REPLAY_BUFFERS` / :data:`ACTION_NOISES`; hindsight where the variant's name does not say so)
     """
     from sb3_hhp.train import ConfigError, select_entry
 
@@ -315,9 +380,50 @@ def baseline_settings(config: str, variant: str, env_id: str) -> dict[str, Any]:
     except ConfigError as error:
         raise SweepError(str(error)) from error
     settings = dict(table[variant][entry] or {})
+    where = f"{config} [{variant}][{entry}]"
     if "vec_rnd" in settings and variant != "ppo_rnd":
-        raise SweepError(f"{config} [{variant}][{entry}]: vec_rnd belongs to ppo_rnd only")
+        raise SweepError(f"{where}: vec_rnd belongs to ppo_rnd only")
+    if settings.get("normalize") and variant == "ppo_rnd":
+        raise SweepError(f"{where}: normalize and ppo_rnd's curiosity wrap the same VecEnv: RND normalizes its own "
+                         "inputs, leave normalize out")
+    replay = settings.get("replay_buffer_class")
+    if replay is not None and replay not in REPLAY_BUFFERS:
+        raise SweepError(f"{where}: unknown replay_buffer_class {replay!r}; accepted: {', '.join(REPLAY_BUFFERS)}")
+    if BASELINES[variant].her and replay != "HerReplayBuffer":
+        raise SweepError(f"{where}: {variant} relabels in hindsight: set replay_buffer_class: HerReplayBuffer")
+    if not BASELINES[variant].her and replay == "HerReplayBuffer":
+        hindsight = ", ".join(name for name, baseline in BASELINES.items() if baseline.her)
+        raise SweepError(f"{where}: {variant} trains without hindsight; HerReplayBuffer is for {hindsight}")
+    if not isinstance(settings.get("replay_buffer_kwargs", {}), dict):
+        raise SweepError(f"{where}: replay_buffer_kwargs must be a mapping (e.g. {{n_sampled_goal: 4, "
+                         f"goal_selection_strategy: future}}), got {settings['replay_buffer_kwargs']!r}")
+    noise = settings.get("noise_type")
+    if noise is not None and (noise not in ACTION_NOISES or "noise_std" not in settings):
+        raise SweepError(f"{where}: noise_type must be one of {', '.join(ACTION_NOISES)}, with noise_std (the noise's "
+                         f"standard deviation, in units of the action), got {noise!r}")
     return settings
+
+
+def check_goal_observation(variant: str, env_id: str, where: str, observation_space: Any = None) -> None:
+    """Refuse a hindsight variant on an env that does not observe a dict goal (:data:`GOAL_KEYS`), which SB3's
+    ``HerReplayBuffer`` relabels.
+
+    :param variant: the variant (named in the error)
+    :param env_id: a registered env id
+    :param where: what the error names first (the sweep file)
+    :param observation_space: the env's observation space (None: that of ``gym.make(env_id)``)
+    """
+    import gymnasium as gym
+
+    if observation_space is None:
+        env = gym.make(env_id)
+        observation_space = env.observation_space
+        env.close()
+    keys = set(observation_space.spaces) if isinstance(observation_space, gym.spaces.Dict) else set()
+    if not set(GOAL_KEYS) <= keys:
+        raise SweepError(f"{where}: {variant} relabels goals in hindsight (HerReplayBuffer) and needs an env that "
+                         f"observes a dict of {', '.join(GOAL_KEYS)} (a goal env, e.g. FetchReach-v4); {env_id} "
+                         f"observes {observation_space}")
 
 
 # ---------------------------------------------------------------------- one experiment (in a worker process)
@@ -443,72 +549,147 @@ def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> 
     }
 
 
-def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, Any]:
-    import torch as th
-    from stable_baselines3 import DQN, PPO
-    from stable_baselines3.common.callbacks import CallbackList, EvalCallback
+def _load(name: str) -> Any:
+    """The object ``module:attribute`` names (an algorithm, a replay buffer, an action noise)."""
+    import importlib
+
+    module, _, attribute = name.partition(":")
+    return getattr(importlib.import_module(module), attribute)
+
+
+def _baseline_envs(env_id: str, baseline: Baseline, n_envs: int, seed: Optional[int] = None) -> Any:
+    """A VecEnv of ``n_envs`` envs (each in a ``Monitor``) with the observation ``baseline`` reads."""
     from stable_baselines3.common.env_util import make_vec_env
 
+    from sb3_hhp.goals import wrap_env
+
+    return make_vec_env(env_id, n_envs=n_envs, seed=seed, wrapper_class=wrap_env if baseline.hhp_observation else None)
+
+
+def _normalize_kwargs(normalize: Any, gamma: Optional[float]) -> Optional[dict[str, Any]]:
+    """``VecNormalize``'s arguments for an entry's ``normalize`` as RL Zoo reads it (true, or a mapping of those
+    arguments; the reward's discount the algorithm's ``gamma``); None: no normalization."""
+    if not normalize:
+        return None
+    kwargs = dict(normalize) if isinstance(normalize, dict) else {}
+    return {**kwargs, "gamma": gamma} if gamma is not None else kwargs
+
+
+def frozen_normalization(envs: Any, trained: Any) -> Any:
+    """``envs`` normalized by the statistics of ``trained``, the training env's ``VecNormalize``, which they do not
+    update, with the env's own rewards (RL Zoo's evaluation envs); ``envs`` as they are when ``trained`` is None."""
+    import copy
+
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    if trained is None:
+        return envs
+    frozen = VecNormalize(envs, training=False, norm_obs=trained.norm_obs, norm_reward=False, clip_obs=trained.clip_obs,
+                          epsilon=trained.epsilon, norm_obs_keys=trained.norm_obs_keys)
+    frozen.obs_rms = copy.deepcopy(trained.obs_rms)
+    return frozen
+
+
+def _constructor_arguments(settings: dict[str, Any], runner: dict[str, Any], action_space: Any) -> dict[str, Any]:
+    """An entry's constructor arguments as the algorithm takes them: the replay buffer's class from its name, RL
+    Zoo's ``train_freq`` list as a tuple, its ``noise_type`` / ``noise_std`` as an action noise of that std on every
+    action coordinate."""
+    import copy
+
+    import numpy as np
+
+    arguments = copy.deepcopy(settings)  # the algorithm adds to its policy_kwargs; the run's summary keeps the entry's
+    if "replay_buffer_class" in arguments:
+        arguments["replay_buffer_class"] = _load(REPLAY_BUFFERS[arguments["replay_buffer_class"]])
+    if isinstance(arguments.get("train_freq"), list):
+        arguments["train_freq"] = tuple(arguments["train_freq"])
+    if runner.get("noise_type") is not None:
+        shape = action_space.shape
+        arguments["action_noise"] = _load(ACTION_NOISES[runner["noise_type"]])(
+            mean=np.zeros(shape), sigma=float(runner["noise_std"]) * np.ones(shape))
+    return arguments
+
+
+def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, Any]:
+    import torch as th
+    from stable_baselines3.common.callbacks import CallbackList, EvalCallback
+    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+    from stable_baselines3.common.vec_env import VecNormalize
+
     from sb3_hhp.curiosity import VecRNDReward
-    from sb3_hhp.goals import register_minigrid_tasks, wrap_env
+    from sb3_hhp.extras import register_fetch_envs
+    from sb3_hhp.goals import register_minigrid_tasks
     from sb3_hhp.train import checkpoint_callback_class, domain_of, eval_seeds, evaluate, read_checkpoint, resume_seed
 
     th.set_num_threads(1)
     register_minigrid_tasks()
+    register_fetch_envs()
+    baseline = BASELINES[experiment.variant]
     settings = baseline_settings(sweep.baselines_conf, experiment.variant, experiment.env)
-    n_envs = int(settings.pop("n_envs", 1))
-    policy = settings.pop("policy", "MlpPolicy")
-    vec_rnd = settings.pop("vec_rnd", None)
+    runner = {key: settings.pop(key) for key in BASELINE_RUNNER_KEYS if key in settings}
+    n_envs = int(runner.get("n_envs", 1))
+    policy = runner.get("policy", "MlpPolicy")
     log_folder = out / "logs" / experiment.name
     # a run stopped before its end goes on from its last checkpoint, its envs seeded apart from its first part's
     checkpoint = read_checkpoint(str(log_folder)) if latest_checkpoint(log_folder) is not None else None
     seed = experiment.seed if checkpoint is None else resume_seed(experiment.seed, checkpoint["timesteps"])
-    env = make_vec_env(experiment.env, n_envs=n_envs, seed=seed, wrapper_class=wrap_env)
+    env = _baseline_envs(experiment.env, baseline, n_envs, seed)
+    if baseline.her:
+        check_goal_observation(experiment.variant, experiment.env, sweep.name, env.observation_space)
+    normalize = _normalize_kwargs(runner.get("normalize"), settings.get("gamma"))
+    if normalize is not None:  # a resumed run's statistics go on from its checkpoint's
+        resumed = checkpoint is not None and checkpoint["vec_normalize"] is not None
+        env = VecNormalize.load(checkpoint["vec_normalize"], env) if resumed else VecNormalize(env, **normalize)
+    vec_rnd = runner.get("vec_rnd")
     if experiment.variant == "ppo_rnd":
         vec_rnd = dict(vec_rnd or {})
         vec_rnd["rnd_kwargs"] = {"seed": experiment.seed, **(vec_rnd.get("rnd_kwargs") or {})}
         env = VecRNDReward(env, **vec_rnd)
-    algo = DQN if experiment.variant == "dqn" else PPO
+    algo = _load(baseline.algorithm)
     part_folder = log_folder  # where this part's periodic evaluations go
     if checkpoint is None:
-        model = algo(policy, env, seed=experiment.seed, device="cpu", verbose=0, **settings)
+        model = algo(policy, env, seed=experiment.seed, device="cpu", verbose=0,
+                     **_constructor_arguments(settings, runner, env.action_space))
     else:
         print(f"Resuming {log_folder} at {checkpoint['timesteps']} steps")
         if checkpoint["vec_rnd"] is not None:
             env.load_state_dict(th.load(checkpoint["vec_rnd"], weights_only=True))
         model = algo.load(checkpoint["model"], env=env, device="cpu", verbose=0)
-        if checkpoint["replay"] is not None:
-            model.load_replay_buffer(checkpoint["replay"])
+        if checkpoint["replay"] is not None:  # a HerReplayBuffer gets the model's env back (it relabels through it)
+            with warnings.catch_warnings():  # and ends its last episode there, as this part starts a fresh one
+                warnings.filterwarnings("ignore", message="The last trajectory in the replay buffer will be truncated")
+                model.load_replay_buffer(checkpoint["replay"])
         model.set_random_seed(seed)
         part_folder = log_folder / f"part_{checkpoint['timesteps']}"
         part_folder.mkdir(parents=True, exist_ok=True)
         (part_folder / RESUMED_FILE).write_text(json.dumps({"timesteps": checkpoint["timesteps"], "seed": seed}) + "\n")
     earlier_seconds = checkpoint["train_seconds"] if checkpoint is not None else 0.0
+
+    def make_envs(n: int, seed: Optional[int] = None) -> Any:  # evaluation envs, normalized as training leaves them
+        return frozen_normalization(_baseline_envs(experiment.env, baseline, n, seed), model.get_vec_normalize_env())
+
     callbacks = []
     eval_freq = sweep.eval_freq[experiment.env]
     if eval_freq > 0:
-        # periodic evaluations on their own env, seeded apart from training; stochastic on MiniGrid (as RL Zoo)
-        eval_env = make_vec_env(
-            experiment.env, n_envs=1, seed=eval_seeds(experiment.seed, 1)[0], wrapper_class=wrap_env
-        )
+        # periodic evaluations on their own env, seeded apart from training; stochastic on MiniGrid (as RL Zoo);
+        # EvalCallback records is_success where the env reports it, and keeps a VecNormalize's statistics in step
         callbacks.append(EvalCallback(
-            eval_env, n_eval_episodes=sweep.curve_episodes, eval_freq=max(eval_freq // n_envs, 1),
-            log_path=str(part_folder), deterministic=domain_of(experiment.env) != "minigrid", verbose=0,
+            make_envs(1, eval_seeds(experiment.seed, 1)[0]), n_eval_episodes=sweep.curve_episodes,
+            eval_freq=max(eval_freq // n_envs, 1), log_path=str(part_folder),
+            deterministic=domain_of(experiment.env) != "minigrid", verbose=0,
         ))
     # a checkpoint at every periodic evaluation (after it: its curve point is on disk), as HhP runs write them;
-    # DQN's at the end of the rollout, once the step's transition is in its replay
+    # an off-policy baseline's at the end of the rollout, once the step's transition is in its replay
     callbacks.append(checkpoint_callback_class()(eval_freq or max(experiment.steps // 10, 1), str(log_folder),
-                                                  earlier_seconds, at_rollout_end=algo is DQN))
+                                                  earlier_seconds, at_rollout_end=issubclass(algo, OffPolicyAlgorithm)))
     start = time.perf_counter()
     model.learn(max(0, experiment.steps - model.num_timesteps), callback=CallbackList(callbacks),
                 reset_num_timesteps=checkpoint is None)
     train_seconds = time.perf_counter() - start
     model.save(log_folder / "model.zip")
+    if model.get_vec_normalize_env() is not None:  # the statistics the model's inputs need, beside it
+        model.get_vec_normalize_env().save(log_folder / "vec_normalize.pkl")
     seeds = eval_seeds(experiment.seed, sweep.eval_episodes)
-
-    def make_envs(n: int) -> Any:
-        return make_vec_env(experiment.env, n_envs=n, wrapper_class=wrap_env)
-
     summary: dict[str, Any] = {
         "env": experiment.env, "variant": experiment.variant, "seed": experiment.seed,
         "total_timesteps": int(model.num_timesteps), "train_seconds": round(train_seconds, 3),
@@ -516,8 +697,10 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
         if train_seconds > 0 else None,
         **({"resumed_at": checkpoint["timesteps"], "train_seconds_all_parts": round(earlier_seconds + train_seconds, 3)}
            if checkpoint is not None else {}),
-        "eval_episodes": len(seeds), "eval_seeds": seeds, "hyperparams": {"n_envs": n_envs, "policy": policy,
-        **settings, **({"vec_rnd": vec_rnd} if vec_rnd else {})}, "log_path": str(log_folder),
+        "eval_episodes": len(seeds), "eval_seeds": seeds,
+        "hyperparams": {**runner, "n_envs": n_envs, "policy": policy, **settings,
+                        **({"vec_rnd": vec_rnd} if vec_rnd else {})},
+        "log_path": str(log_folder),
     }
     for name, deterministic in (("deterministic", True), ("stochastic", False)):
         results = evaluate(model, make_envs, seeds, deterministic=deterministic)

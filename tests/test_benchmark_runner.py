@@ -123,11 +123,57 @@ GRID = "envs: [MiniGrid-Empty-5x5-v0]\nvariants: [ppo]\nseeds: [0]\n"
         (GRID + "steps: 10\nhhp_variants: {noisy: []}", "name 'noisy' must start with hhp_"),
         (GRID + "steps: 10\nhhp_variants: {hhp__x: []}", "single '_'"),
         (GRID + "steps: 10\nhhp_variants: {hhp_x: --oracle}", "hhp_variants\\[hhp_x\\] must be a list"),
+        (GRID + "steps: 10\nvariant_seeds: {dqn: [0]}", "variant_seeds must map some of the sweep's variants \\(ppo\\)"),
+        (GRID + "steps: 10\nvariant_seeds: {ppo: [-2]}", "variant_seeds\\[ppo\\] must be an integer >= 0"),
     ],
 )
 def test_sweep_errors_say_what_to_fix(tmp_path, text, message):
     with pytest.raises(SweepError, match=message):
         load_sweep(write(tmp_path, text))
+
+
+@pytest.mark.parametrize(
+    "variant, env, entry, message",
+    [
+        ("ddpg_her", "MiniGrid-Empty-5x5-v0", "{replay_buffer_class: HerReplayBuffer}",
+         "ddpg_her relabels goals in hindsight \\(HerReplayBuffer\\) and needs an env that observes a dict of "
+         "observation, achieved_goal, desired_goal .*; MiniGrid-Empty-5x5-v0 observes Dict"),
+        ("ddpg", "FetchReach-v4", "{replay_buffer_class: HerBuffer}",
+         "\\[ddpg\\]\\[default\\]: unknown replay_buffer_class 'HerBuffer'; accepted: ReplayBuffer, DictReplayBuffer, "
+         "HerReplayBuffer"),
+        ("tqc_her", "FetchReach-v4", "{policy: MultiInputPolicy}",
+         "tqc_her relabels in hindsight: set replay_buffer_class: HerReplayBuffer"),
+        ("ddpg", "FetchReach-v4", "{replay_buffer_class: HerReplayBuffer}",
+         "ddpg trains without hindsight; HerReplayBuffer is for ddpg_her, tqc_her"),
+        ("ddpg", "FetchReach-v4", "{noise_type: gaussian, noise_std: 0.1}",
+         "noise_type must be one of normal, ornstein-uhlenbeck"),
+        ("ddpg_her", "FetchReach-v4", "{replay_buffer_class: HerReplayBuffer, replay_buffer_kwargs: 'dict(n_sampled_goal=4)'}",
+         "replay_buffer_kwargs must be a mapping"),
+    ],
+)
+def test_baseline_entries_say_what_to_fix(tmp_path, variant, env, entry, message):
+    """A hindsight variant on an env that observes no dict goal names the variant and the env; a replay buffer or an
+    action noise the runner does not know is named with those it accepts; hindsight goes with the _her variants only."""
+    write(tmp_path, f"{variant}:\n  default: {entry}\n", "baselines.yml")
+    with pytest.raises(SweepError, match=message):
+        load_sweep(write(tmp_path, f"envs: [{env}]\nvariants: [{variant}]\nseeds: [0]\nsteps: 10\n"
+                                   f"baselines_conf: {tmp_path / 'baselines.yml'}\n"))
+
+
+@pytest.mark.parametrize("variant", ["ddpg", "ddpg_her", "tqc_her"])
+@pytest.mark.parametrize("env", ["FetchReach-v4", "FetchPush-v4", "FetchPickAndPlace-v4", "FetchSlide-v4"])
+def test_the_fetch_baselines_settings_are_their_algorithms_arguments(variant, env):
+    """Every key of the shipped Fetch entries is the runner's or an argument of the variant's algorithm, and the
+    replay buffer is the one the variant's name says."""
+    import inspect
+
+    from benchmarks.run import BASELINE_RUNNER_KEYS, BASELINES, _load, baseline_settings
+
+    settings = baseline_settings(str(EXPERIMENTS.parents[1] / "sb3_hhp" / "hyperparams" / "baselines.yml"), variant, env)
+    arguments = inspect.signature(_load(BASELINES[variant].algorithm)).parameters
+    assert set(settings) - set(BASELINE_RUNNER_KEYS) <= set(arguments), set(settings) - set(arguments)
+    assert settings["policy"] == "MultiInputPolicy" and not BASELINES[variant].hhp_observation
+    assert (settings["replay_buffer_class"] == "HerReplayBuffer") == variant.endswith("_her")
 
 
 def test_command_line_reports_errors_in_one_line(tmp_path, capsys):
@@ -384,22 +430,43 @@ dqn:
     batch_size: 16
     train_freq: 4
     target_update_interval: 100
+ddpg_her:
+  default:
+    policy: MultiInputPolicy
+    learning_starts: 64
+    buffer_size: 1000
+    batch_size: 16
+    train_freq: [4, step]
+    noise_type: normal
+    noise_std: 0.2
+    normalize: {norm_reward: false, clip_obs: 5.0}
+    policy_kwargs: {net_arch: [16]}
+    replay_buffer_class: HerReplayBuffer
+    replay_buffer_kwargs: {n_sampled_goal: 2, goal_selection_strategy: future}
 """
 
 
-@pytest.mark.parametrize("variant", ["ppo_rnd", "dqn"])
-def test_a_stopped_baseline_run_goes_on_from_its_last_checkpoint(tmp_path, variant):
-    """The flat baselines write a checkpoint at every periodic evaluation (the model; DQN's replay; PPO + RND's
-    curiosity state) and a run stopped before its end goes on from it: the step count, the curiosity's state and the
-    replay carry on, the curve joins both parts, the training time counts both."""
+@pytest.mark.parametrize("variant, env", [("ppo_rnd", "MiniGrid-Empty-5x5-v0"), ("dqn", "MiniGrid-Empty-5x5-v0"),
+                                          ("ddpg_her", "FetchReach-v4")])
+def test_a_stopped_baseline_run_goes_on_from_its_last_checkpoint(tmp_path, variant, env):
+    """The flat baselines write a checkpoint at every periodic evaluation (the model; an off-policy one's replay, a
+    HerReplayBuffer given the model's env back; PPO + RND's curiosity state; a VecNormalize's statistics) and a run
+    stopped before its end goes on from it: the step count, the curiosity's state, the statistics and the replay carry
+    on, the curve joins both parts, the training time counts both."""
+    import pickle
+
     import torch as th
 
     from sb3_hhp.train import read_checkpoint
 
+    def observations_counted(path: str) -> float:  # a VecNormalize's statistics (saved without its env)
+        with open(path, "rb") as file:
+            return float(pickle.load(file).obs_rms["observation"].count)
+
     write(tmp_path, TINY_BASELINES, "baselines.yml")
     sweep = load_sweep(write(tmp_path, f"""
         name: tiny
-        envs: [MiniGrid-Empty-5x5-v0]
+        envs: [{env}]
         variants: [{variant}]
         seeds: [0]
         steps: 512
@@ -410,15 +477,17 @@ def test_a_stopped_baseline_run_goes_on_from_its_last_checkpoint(tmp_path, varia
     """))
     out = tmp_path / "out"
     # part 1: a budget of 256 steps stands for a run stopped after its first checkpoint
-    first = Experiment("MiniGrid-Empty-5x5-v0", variant, 0, 256)
+    first = Experiment(env, variant, 0, 256)
     run_experiment(first, sweep, out)
     log = out / "logs" / first.name
     checkpoint = read_checkpoint(str(log))
     assert checkpoint["timesteps"] == 256
     assert (checkpoint["vec_rnd"] is not None) == (variant == "ppo_rnd")
-    assert (checkpoint["replay"] is not None) == (variant == "dqn")
+    assert (checkpoint["replay"] is not None) == (variant != "ppo_rnd")
+    assert (checkpoint["vec_normalize"] is not None) == (variant == "ddpg_her")
+    counted = observations_counted(checkpoint["vec_normalize"]) if variant == "ddpg_her" else None
     # part 2: the whole budget, from that checkpoint
-    row = run_experiment(Experiment("MiniGrid-Empty-5x5-v0", variant, 0, 512), sweep, out)
+    row = run_experiment(Experiment(env, variant, 0, 512), sweep, out)
     assert row["timesteps"] == 512
     summary = pd.read_json(out / row["summary"], typ="series")
     assert summary["resumed_at"] == 256
@@ -437,9 +506,15 @@ def test_a_stopped_baseline_run_goes_on_from_its_last_checkpoint(tmp_path, varia
     if variant == "ppo_rnd":  # 512 steps of 2 envs, an update every 16: the first part's updates are counted on
         assert th.load(checkpoint["vec_rnd"], weights_only=True)["n_updates"] == 512 // 2 // 16
     else:  # the replay holds both parts' transitions
+        from stable_baselines3 import HerReplayBuffer
         from stable_baselines3.common.save_util import load_from_pkl
 
-        assert load_from_pkl(checkpoint["replay"]).size() == 512
+        replay = load_from_pkl(checkpoint["replay"])
+        assert replay.size() == 512 and isinstance(replay, HerReplayBuffer) == (variant == "ddpg_her")
+    if variant == "ddpg_her":  # the statistics count on from part 1's; success is the env's is_success
+        assert observations_counted(checkpoint["vec_normalize"]) >= counted + 256
+        assert all("successes" in np.load(path).files for path in attempt_evaluations(log))
+        assert summary["hyperparams"]["replay_buffer_class"] == "HerReplayBuffer"
 
 
 def test_a_run_records_the_code_it_ran(tmp_path):

@@ -1,9 +1,10 @@
 """Checkpoints of a run (``--checkpoint-freq``) and going on from them (``--resume``).
 
 A run folder keeps one complete checkpoint, ``checkpoints/<steps>/`` (the model, its replays, a curiosity wrapper's
-state), and ``checkpoint.json`` pointing at it, written last: a run stopped at any moment can go on from there. A
-resumed part writes ``resumed.json`` (the run folder and checkpoint it went on from) and keeps its answers in the
-first part's preference database (:func:`answers_database`). It draws its episodes from :func:`resume_seed`.
+state, a ``VecNormalize``'s statistics), and ``checkpoint.json`` pointing at it, written last: a run stopped at any
+moment can go on from there. A resumed part writes ``resumed.json`` (the run folder and checkpoint it went on from)
+and keeps its answers in the first part's preference database (:func:`answers_database`). It draws its episodes
+from :func:`resume_seed`.
 """
 
 import json
@@ -32,8 +33,9 @@ def checkpoint_callback_class() -> type:
 
     class LatestCheckpoint(BaseCallback):
         """Every ``save_freq`` primitive steps (and at the end of training), the model (:meth:`HhP.save`), its
-        replays (:meth:`HhP.save_replay_buffer`; any off-policy model's) and the state of a
-        :class:`~sb3_hhp.curiosity.vec_rnd.VecRNDReward` around its env (an on-policy baseline's curiosity) in
+        replays (:meth:`HhP.save_replay_buffer`; any off-policy model's), the state of a
+        :class:`~sb3_hhp.curiosity.vec_rnd.VecRNDReward` around its env (an on-policy baseline's curiosity) and the
+        statistics of a ``VecNormalize`` around it (a baseline's normalized inputs) in
         ``<run folder>/checkpoints/<steps>/``, then ``checkpoint.json`` pointing at them, then the older checkpoints
         removed: a run stopped at any moment keeps a complete checkpoint, which ``--resume`` (HhP) or the benchmark
         runner (every variant) goes on from. A checkpoint the disk cannot hold is not written (less free space than
@@ -106,7 +108,8 @@ def checkpoint_callback_class() -> type:
                 print(f"Checkpoint at {steps} steps: {folder}")
 
         def _write(self, folder: Path, steps: int) -> dict[str, str]:
-            """The checkpoint's files (model, replays, curiosity state) in ``folder``; their paths for the pointer."""
+            """The checkpoint's files (model, replays, curiosity state, normalization statistics) in ``folder``;
+            their paths for the pointer."""
             folder.mkdir(parents=True, exist_ok=True)
             files = {"model": f"checkpoints/{steps}/model.zip"}
             self.model.save(folder / "model.zip")
@@ -119,6 +122,10 @@ def checkpoint_callback_class() -> type:
 
                 th.save(curiosity.state_dict(), folder / "vec_rnd.pt")
                 files["vec_rnd"] = f"checkpoints/{steps}/vec_rnd.pt"
+            normalization = self.model.get_vec_normalize_env()
+            if normalization is not None:
+                normalization.save(folder / "vec_normalize.pkl")
+                files["vec_normalize"] = f"checkpoints/{steps}/vec_normalize.pkl"
             return files
 
         def _skip(self, steps: int, why: str) -> None:
@@ -149,8 +156,9 @@ def vec_rnd_of(env: Any) -> Any:
 
 def read_checkpoint(run_folder: str) -> dict[str, Any]:
     """The latest checkpoint of a run folder (``checkpoint.json``): its step count and the paths of the model, the
-    replays (off-policy models) and a curiosity wrapper's state (``vec_rnd``, where the run had one; None
-    otherwise). A clear error when there is none or its files are gone."""
+    replays (off-policy models), a curiosity wrapper's state (``vec_rnd``) and a ``VecNormalize``'s statistics
+    (``vec_normalize``), each where the run had one (None otherwise). A clear error when there is none or its files
+    are gone."""
     folder = Path(run_folder)
     if not folder.is_dir():
         raise ConfigError(f"--resume {run_folder}: no such run folder (e.g. logs/hhp/MiniGrid-DoorKey-8x8-v0_1)")
@@ -162,11 +170,11 @@ def read_checkpoint(run_folder: str) -> dict[str, Any]:
         checkpoint = json.loads(pointer.read_text())
         checkpoint = {"timesteps": int(checkpoint["timesteps"]), "model": str(folder / checkpoint["model"]),
                       **{what: str(folder / checkpoint[what]) if checkpoint.get(what) else None
-                         for what in ("replay", "vec_rnd")},
+                         for what in ("replay", "vec_rnd", "vec_normalize")},
                       "run_folder": str(folder), "train_seconds": float(checkpoint.get("train_seconds", 0.0))}
     except (ValueError, KeyError, TypeError) as error:
         raise ConfigError(f"--resume {run_folder}: {pointer} is damaged ({error})") from error
-    for what in ("model", "replay", "vec_rnd"):
+    for what in ("model", "replay", "vec_rnd", "vec_normalize"):
         if checkpoint[what] is not None and not os.path.isfile(checkpoint[what]):
             raise ConfigError(f"--resume {run_folder}: the checkpoint's {what} {checkpoint[what]} is missing")
     return checkpoint
