@@ -41,8 +41,8 @@ except ImportError:  # run as a script, python benchmarks/report.py: the reposit
     from benchmarks.run import Experiment, _curve_from_evaluations, attempt_evaluations
 
 #: variant -> name in tables and legends, in the order of tables and plots
-VARIANT_NAMES = {"hhp": "HhP", "dqn": "DQN", "ppo": "PPO", "ppo_rnd": "PPO + RND", "ddpg_her": "DDPG + HER",
-                 "tqc_her": "TQC + HER"}
+VARIANT_NAMES = {"hhp": "HhP", "dqn": "DQN", "ppo": "PPO", "ppo_rnd": "PPO + RND", "ddpg": "DDPG",
+                 "ddpg_her": "DDPG + HER", "tqc_her": "TQC + HER"}
 #: columns a results file must have
 REQUIRED_COLUMNS = ("env", "variant", "seed", "steps", "success_det", "success_stoch", "labels_used", "wall_seconds")
 #: points of the common step grid the seeds' curves are interpolated onto
@@ -382,8 +382,8 @@ class Source(NamedTuple):
 
 
 class Task(NamedTuple):
-    """A row group of the summary: an env, HhP's row (the settings users train it with), the flat baselines' rows;
-    ``hhp`` None: not run yet."""
+    """A row group of the summary: an env, HhP's row (the settings users train it with), the flat baselines' rows
+    (a baseline its sweep file names and that has no row yet: "not run yet"); ``hhp`` None: not run yet."""
 
     env: str
     hhp: Optional[Source]
@@ -404,7 +404,7 @@ SUMMARY = (
          (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")), not_run=("dqn",)),
     Task("MiniGrid-ObstructedMaze-1Q-v1", Source("minigrid_tasks", "hhp"),
          (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")), not_run=("dqn",)),
-    Task("FetchReach-v4", Source("fetch_reach", "hhp"), not_run=("ddpg_her", "tqc_her")),
+    Task("FetchReach-v4", Source("fetch_reach", "hhp"), (Source("fetch_reach", "ddpg_her"), Source("fetch_reach", "tqc_her"))),
     Task("Fetch Push, PickAndPlace, Slide (the `fetch` entry)", None, note="not run yet"),
     Task("Atari (Montezuma's Revenge, Pitfall, ...; the `atari` entry)", None, note="not run yet"),
 )
@@ -435,6 +435,8 @@ def sweep_results(folder: Path) -> pd.DataFrame:
 def summary_rows(root: Path = ROOT) -> list[list[str]]:
     """The summary's rows (:data:`SUMMARY`), cells as :data:`SUMMARY_HEADER`, from the sweeps' results files."""
     cache: dict[str, pd.DataFrame] = {}
+    planned = {(name, variant) for name, files in sweep_files(root).items() for _, data in files
+               for variant in data.get("variants") or []}
     rows = []
     for task in SUMMARY:
         if task.hhp is None:
@@ -442,9 +444,15 @@ def summary_rows(root: Path = ROOT) -> list[list[str]]:
             continue
         for index, source in enumerate((task.hhp, *task.baselines)):
             if source.sweep not in cache:
-                cache[source.sweep] = sweep_results(root / RESULTS / source.sweep)
+                folder = root / RESULTS / source.sweep
+                cache[source.sweep] = (sweep_results(folder) if (folder / "results.csv").is_file()
+                                       else pd.DataFrame(columns=list(REQUIRED_COLUMNS)))
             results = cache[source.sweep]
             runs = results[(results["env"] == task.env) & (results["variant"] == source.variant)]
+            if runs.empty and index > 0 and (source.sweep, source.variant) in planned:
+                rows.append(["", VARIANT_NAMES[source.variant], f"`{source.sweep}`: `{source.variant}`", "–", "–",
+                             "not run yet", "not run yet", "–", "–"])
+                continue
             if runs.empty:
                 raise SystemExit(f"{RESULTS / source.sweep / 'results.csv'} has no {task.env} {source.variant} row: "
                                  "change report.SUMMARY or run that sweep")

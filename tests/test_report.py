@@ -84,3 +84,32 @@ def test_a_missing_marker_is_named(tmp_path):
     readme.write_text(readme.read_text().replace("<!-- results:end -->", ""))
     with pytest.raises(SystemExit, match="README.md needs one block"):
         report.write_or_check(root, check=True)
+
+
+def fetch_reach_rows(root: Path) -> list[list[str]]:
+    """The summary's FetchReach rows: HhP, DDPG + HER, TQC + HER."""
+    rows = report.summary_rows(root)
+    start = next(index for index, row in enumerate(rows) if row[0] == "FetchReach-v4")
+    return rows[start:start + 3]
+
+
+def test_a_baseline_its_sweep_names_has_its_row_once_it_ran(tmp_path):
+    """A baseline of the summary that its sweep file names reads "not run yet", with the sweep and variant its figures
+    will come from, until the sweep's results file has its rows, then their figures; one that no sweep file names and
+    no results file has is an error that says what to change."""
+    root = copy_tree(tmp_path)
+    _, ddpg_her, tqc_her = fetch_reach_rows(root)
+    assert ddpg_her[1:3] == ["DDPG + HER", "`fetch_reach`: `ddpg_her`"] and ddpg_her[5:7] == ["not run yet"] * 2
+    assert tqc_her[1:3] == ["TQC + HER", "`fetch_reach`: `tqc_her`"] and tqc_her[5] == "not run yet"
+    csv_path = root / report.RESULTS / "fetch_reach" / "results.csv"
+    results = pd.read_csv(csv_path)
+    ran = results.iloc[[0]].assign(variant="tqc_her", success_det=1.0, success_stoch=0.98, labels_used=None,
+                                   curve=None, summary=None)
+    pd.concat([results, ran], ignore_index=True).to_csv(csv_path, index=False)
+    _, ddpg_her, tqc_her = fetch_reach_rows(root)
+    assert tqc_her == ["", "TQC + HER", "`fetch_reach`: `tqc_her`", "50,000", "0", "1.00", "0.98", "–", "yes / yes"]
+    assert ddpg_her[5] == "not run yet"
+    sweep = root / report.EXPERIMENTS / "fetch_reach.yml"
+    sweep.write_text(sweep.read_text().replace("variants: [hhp, ddpg_her, tqc_her]", "variants: [hhp, tqc_her]"))
+    with pytest.raises(SystemExit, match="has no FetchReach-v4 ddpg_her row: change report.SUMMARY or run that sweep"):
+        report.summary_rows(root)
