@@ -14,7 +14,11 @@ position is within ``distance_threshold`` (0.05 m) of the sub-goal's, measured b
 discovery gate's similarity falls with that distance d: 1 / (1 + (d / distance_threshold)^2), 1 at the same
 place and 0.5 at the threshold, so with ``b_similarity = 0.5`` no new sub-goal lies within reach of an old
 one. People see the rendered scene when the env renders (``render_mode="rgb_array"``), else a drawing of the
-achieved position and the target seen from above and from the side.
+achieved position and the target seen from above and from the side. The envs' own camera shows the whole robot,
+the table top a third of the frame wide; :data:`TABLE_CAMERA` looks down at the table top, where the object (a black
+cube) and the target (a red sphere) come out about twice as large across::
+
+    gym.make("FetchPush-v4", render_mode="rgb_array", default_camera_config=TABLE_CAMERA)
 """
 
 import math
@@ -33,6 +37,9 @@ VIEW_CENTER = np.array([1.30, 0.75, 0.60])
 VIEW_HALF_WIDTH = 0.40
 #: pixels per side of each of the two panels of the drawing
 PANEL = 64
+#: a camera on the table top for the scenes people see (``default_camera_config`` of the Fetch envs; distance in
+#: metres, angles in degrees): the whole table top seen from above, the robot behind it
+TABLE_CAMERA = {"distance": 1.5, "azimuth": 160.0, "elevation": -50.0, "lookat": np.array([1.30, 0.75, 0.42])}
 #: the parts of a Fetch observation, in the order :class:`FetchFlatObs` concatenates them
 FIELDS = ("observation", "achieved_goal", "desired_goal")
 
