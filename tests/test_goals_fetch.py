@@ -208,3 +208,27 @@ def test_a_run_clock_on_ddpg_subgoals_names_the_fix() -> None:
     message = "exploration_run_steps.*discrete actions.*continuous-action.*leave exploration_run_steps out"
     with pytest.raises(ValueError, match=message):
         HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(exploration_run_steps=1000))
+
+
+def test_predict_ends_task_solved_where_the_target_is_reached_and_chooses_it_again(monkeypatch) -> None:
+    """At the target the "task solved" option is reached (training's terminal key), not given up after
+    max_subgoal_steps: a greedy meta-controller that values it best keeps it rather than being sent elsewhere."""
+    th.set_num_threads(1)
+    model = HhP("MlpPolicy", gym.make(REACH), query_budget=0, seed=0, max_subgoal_steps=3)
+    env = wrap_env(gym.make(REACH))
+    obs, _ = env.reset(seed=0)
+    place = model.add_subgoal(model.goal_space.key(obs), obs, None, source="user")
+    solved = model.add_subgoal(SUCCESS_KEY, obs, None, source="user")
+    at_target = _flat(obs[:-6], list(obs[-3:]), list(obs[-3:]))
+    away = _flat(obs[:-6], [1.0, 0.5, 0.2], list(obs[-3:]))
+    best = th.full((1, int(model.action_space.n)), -1.0)
+    best[0, solved] = 1.0
+    monkeypatch.setattr(model, "_q_values", lambda observations: best.expand(len(observations), -1).clone())
+    for steps in (1, 3):  # reached after one step, and on the step it would have given up
+        _, state = model.predict(at_target, state=(np.array([solved]), np.array([steps])), deterministic=True)
+        assert state[0][0] == solved and state[1][0] == 1  # chosen again, a fresh option
+    # away from the target the option runs on, then gives up and the best other sub-goal follows
+    _, state = model.predict(away, state=(np.array([solved]), np.array([1])), deterministic=True)
+    assert state[0][0] == solved and state[1][0] == 2
+    _, state = model.predict(away, state=(np.array([solved]), np.array([3])), deterministic=True)
+    assert state[0][0] == place

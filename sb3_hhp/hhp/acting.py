@@ -119,15 +119,18 @@ class HierarchicalActing:
         remember = self.break_cycles
         here = np.array([int.from_bytes(digest[:8], "little", signed=True) for digest in observation_digests(batch)],
                         dtype=np.int64) if remember else None
-        renew = []
+        renew, reached = [], np.zeros(n_envs, dtype=bool)
         for i in range(n_envs):
             goal = goals[i]
             if goal < 0:
                 renew.append(i)
                 continue
-            achieved, gave_up = option_terminal(self.goal_space, self.goal_space.key(batch[i]), subgoals[goal].key,
-                                                int(steps[i]), self.max_subgoal_steps)
-            if gave_up or (achieved and steps[i] > 0):
+            # the key training's options end on: "task solved" where the goal space reads it off the state (Fetch)
+            key = self.goal_space.terminal_key(batch[i], 0.0, False)
+            achieved, gave_up = option_terminal(self.goal_space, key, subgoals[goal].key, int(steps[i]),
+                                                self.max_subgoal_steps)
+            reached[i] = achieved and steps[i] > 0
+            if gave_up or reached[i]:
                 renew.append(i)
         if renew:
             renew = np.asarray(renew)
@@ -138,7 +141,7 @@ class HierarchicalActing:
                 # failing choice until the episode ends), and with break_cycles any sub-goal chosen before in this
                 # observation in this episode (a greedy policy back in a state goes round the same loop of choices)
                 excluded = np.zeros((len(renew), len(subgoals)), dtype=bool)
-                failed = (goals[renew] >= 0) & (steps[renew] >= self.max_subgoal_steps)
+                failed = (goals[renew] >= 0) & (steps[renew] >= self.max_subgoal_steps) & ~reached[renew]
                 excluded[np.flatnonzero(failed), goals[renew][failed]] = True
                 if remember:
                     known = np.minimum(n_chosen[renew], CHOICE_MEMORY)
