@@ -171,3 +171,30 @@ def test_scripted_picks_the_montezuma_oracle_for_an_image_goal_space_bound_to_it
     with pytest.raises(ValueError, match="ALE game 'pong'.*Montezuma.*'synthetic'"):
         make_oracle("scripted", other, pong.observation_space)
     assert make_oracle("synthetic", other, pong.observation_space) is not None
+
+
+def test_hhp_training_asks_the_montezuma_oracle_with_the_facts_of_both_sub_goals() -> None:
+    """Training's questions carry the facts of the states each sub-goal was found in (the goal space takes a snapshot at
+    every primitive step on Montezuma), and the scripted oracle answers them."""
+    import torch as th
+    from stable_baselines3.common.atari_wrappers import AtariWrapper
+
+    from sb3_hhp import HhP
+
+    th.set_num_threads(1)
+    env = AtariWrapper(gym.make("ALE/MontezumaRevenge-v5", repeat_action_probability=0.0))
+    model = HhP(
+        "CnnPolicy", env, oracle="scripted", query_budget=4, seed=0, learning_starts=50, batch_size=16,
+        buffer_size=1_000, query_kwargs=dict(mode="fixed", threshold=0.0), predictor_kwargs=dict(n_masks=4),
+        discovery_kwargs=dict(strategy="random", min_visits=1, similarity_threshold=1.0),
+        subpolicy_kwargs=dict(learning_starts=10_000, buffer_size=2_000),
+    )
+    assert model.goal_space.facts_per_step and isinstance(model.oracle, MontezumaScriptedOracle)
+    model.learn(600)
+    # sub-goals found while questions remained keep their state's snapshot (none is taken once the budget is spent)
+    assert sum(goal.snapshot is not None for goal in model.subgoals) >= 2
+    answered = [model.store.get_query(query_id) for query_id in model.consumed_query_ids]
+    assert answered
+    for query in answered:
+        for name in ("goal1_state", "goal2_state"):
+            assert query.info[name]["game"] == "montezuma_revenge" and query.info[name]["room"] == 1

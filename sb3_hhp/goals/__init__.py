@@ -55,6 +55,7 @@ def make_goal_space(goal_space: Union[str, GoalSpace], env: gym.Env) -> GoalSpac
             "8x8 pixels (goal_space='image'; Atari: stable_baselines3.common.atari_wrappers.AtariWrapper); "
             "pass goal_space= a GoalSpace for other envs."
         )
+    candidates[0].bind(env)
     return candidates[0]
 
 

@@ -22,6 +22,9 @@ class GoalSpace(ABC):
 
     #: short name used in configs (``goal_space="minigrid"``)
     name: str = "base"
+    #: whether a :meth:`snapshot` is cheap enough to take at every primitive step: then each sub-goal keeps the facts
+    #: of the state it was found in, and a question carries them as ``info["goal1_state"]`` / ``["goal2_state"]``
+    facts_per_step: bool = False
 
     @classmethod
     @abstractmethod

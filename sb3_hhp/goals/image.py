@@ -156,6 +156,7 @@ class ImageGoalSpace(GoalSpace):
         """Record the env's ALE game (:attr:`game`: a Montezuma's Revenge env gets its scripted oracle) and check that
         its frames have the reference's shape, which the landmark boxes were checked against."""
         self.game = ale_game(env)
+        self.facts_per_step = self.game == MONTEZUMA  # 8 bytes of RAM a step
         if self.landmarks is not None:
             self._check_frame(self.frame(np.zeros(env.observation_space.shape, dtype=np.uint8)), "the env observes")
 

@@ -165,6 +165,9 @@ class BetweenEpisodes:
                 "goal1_name": goal_space.describe(subgoals[first].key),
                 "goal2_name": goal_space.describe(subgoals[second].key),
                 **goal_space.query_info(states[index], subgoals[first].obs, subgoals[second].obs),
+                **({"goal1_state": goal_space.facts(subgoals[first].snapshot),
+                    "goal2_state": goal_space.facts(subgoals[second].snapshot)}
+                   if subgoals[first].snapshot is not None and subgoals[second].snapshot is not None else {}),
             },
         )
 
@@ -194,9 +197,11 @@ class BetweenEpisodes:
             return []
         goal_space = self.goal_space
         states = np.stack(trace.low_obs)
+        snapshots = trace.low_privileged if len(trace.low_privileged) == len(states) else [None] * len(states)
         if len(self.subgoals) == 0:  # line 5: a random visited state
             index = int(self.discovery.rng.integers(len(states)))
-            return [self.add_subgoal(trace.low_keys[index], states[index], goal_space.image_of(states[index]), source="random")]
+            return [self.add_subgoal(trace.low_keys[index], states[index], goal_space.image_of(states[index]), source="random",
+                                     snapshot=snapshots[index])]
         if self.discovery_strategy == "none" or trace.random:
             return []
         rho = None
@@ -205,7 +210,7 @@ class BetweenEpisodes:
         chosen = self.discovery.select(states, trace.low_keys, rho, self.subgoal_set.visits,
                                        self.subgoal_set.keys, self.goal_obs)
         return [self.add_subgoal(trace.low_keys[index], states[index], goal_space.image_of(states[index]),
-                                 source=self.discovery.strategy) for index in chosen]
+                                 source=self.discovery.strategy, snapshot=snapshots[index]) for index in chosen]
 
     # ------------------------------------------------------------------ curiosity (line 35)
     def update_curiosity(self: Any, trace: EpisodeTrace, n_epochs: int = 1) -> None:

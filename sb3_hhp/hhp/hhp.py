@@ -463,9 +463,11 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         """The sub-goal set G, in the order of the meta-controller's actions."""
         return self.subgoal_set.goals
 
-    def add_subgoal(self, key: Any, obs: np.ndarray, image: Optional[np.ndarray], source: str = "csd") -> int:
-        """Add a sub-goal (and its learner); the meta-controller's head doubles when full (design decisions: growing head)."""
-        goal_id = self.subgoal_set.add(key, obs, image, self.num_timesteps, source)
+    def add_subgoal(self, key: Any, obs: np.ndarray, image: Optional[np.ndarray], source: str = "csd",
+                    snapshot: Any = None) -> int:
+        """Add a sub-goal (and its learner); the meta-controller's head doubles when full (design decisions: growing head).
+        ``snapshot``: the goal space's snapshot of the state it was found in (questions give its facts to oracles)."""
+        goal_id = self.subgoal_set.add(key, obs, image, self.num_timesteps, source, snapshot)
         self.subpolicies.add(key)
         self._sync_action_space()
         return goal_id

@@ -35,6 +35,8 @@ class Subgoal:
     image: Optional[np.ndarray]
     found_at: int
     source: str = "csd"
+    #: the goal space's snapshot of the state it was found in (goal spaces with ``facts_per_step``; else None)
+    snapshot: Any = None
 
 
 class SubgoalSet:
@@ -57,8 +59,9 @@ class SubgoalSet:
     def keys(self) -> list[Hashable]:
         return [goal.key for goal in self.goals]
 
-    def add(self, key: Hashable, obs: np.ndarray, image: Optional[np.ndarray], found_at: int, source: str = "csd") -> int:
-        self.goals.append(Subgoal(key, np.array(obs, copy=True), image, int(found_at), source))
+    def add(self, key: Hashable, obs: np.ndarray, image: Optional[np.ndarray], found_at: int, source: str = "csd",
+            snapshot: Any = None) -> int:
+        self.goals.append(Subgoal(key, np.array(obs, copy=True), image, int(found_at), source, snapshot))
         return len(self.goals) - 1
 
 
@@ -81,6 +84,7 @@ class EpisodeTrace:
     low_obs: list = field(default_factory=list)  # every primitive next state s_{t+1}
     low_keys: list = field(default_factory=list)  # its sub-goal key
     intrinsic: list = field(default_factory=list)  # r^i of every primitive step
+    low_privileged: list = field(default_factory=list)  # snapshots of every primitive step (``facts_per_step``)
     random: bool = False  # the random-action episode that seeds G (Algorithm 1 line 5)
 
 
@@ -304,6 +308,9 @@ class OptionRunner:
         intrinsic = (self.rnd.intrinsic_reward(final_obs) if self.rnd is not None else np.zeros(n)).astype(np.float32)
         self.learners.observe(obs, actions, final_obs, keys, terminated, truncated, gave_up, acting, intrinsic)
         visits = self.subgoals.visits
+        if self.goal_space.facts_per_step and self.record_privileged:  # each step's state, as a question may name it
+            for i in range(n):
+                self.traces[i].low_privileged.append(self.goal_space.snapshot(env_view(self.venv, i)))
         for i in range(n):
             visits[keys[i]] += 1
             trace = self.traces[i]
