@@ -463,3 +463,30 @@ def test_synthetic_oracle_bad_arguments():
     with pytest.warns(UserWarning, match="negative returns"):
         oracle.observe(np.zeros((1, 3)), np.zeros((1, 3)), np.array([-1.0]))
     assert math.isnan(SyntheticOracle(space, hidden_dim=8).train())
+
+
+def test_synthetic_oracle_trains_on_new_triples_at_a_cost_that_follows_what_arrived(monkeypatch):
+    """train_on_new: ceil(n_epochs * new / batch_size) minibatches from the whole buffer, however large it is; nothing
+    when nothing arrived; and the estimates it learns in episodes' chunks are the average returns."""
+    import gymnasium
+    import torch
+
+    torch.set_num_threads(1)
+    space = gymnasium.spaces.Box(-1, 1, shape=(3,), dtype=np.float32)
+    oracle = SyntheticOracle(space, hidden_dim=32, dropout=0.1, batch_size=64, n_epochs=4, seed=0)
+    steps = []
+    step = oracle.optimizer.step
+    monkeypatch.setattr(oracle.optimizer, "step", lambda *a, **k: (steps.append(1), step(*a, **k))[1])
+    states, goals, returns = synthetic_data(4000)
+    counts = []
+    for start in range(0, 4000, 40):  # episodes of 40 triples, the buffer growing to 4000
+        oracle.observe(states[start : start + 40], goals[start : start + 40], returns[start : start + 40])
+        before = len(steps)
+        oracle.train_on_new()
+        counts.append(len(steps) - before)
+    assert set(counts) == {math.ceil(4 * 40 / 64)}  # 3 a call, from the first episode to the hundredth
+    assert math.isnan(oracle.train_on_new()) and len(steps) == sum(counts)  # nothing new, nothing trained
+    test_states, test_goals, _ = synthetic_data(200, seed=1)
+    values = oracle.predict(test_states, test_goals)
+    np.testing.assert_allclose(values[test_goals[:, 0] > 0].mean(), 1.0, atol=0.25)
+    np.testing.assert_allclose(values[test_goals[:, 0] < 0].mean(), 1.5, atol=0.25)

@@ -69,7 +69,7 @@ class BetweenEpisodes:
         if hasattr(oracle, "observe"):  # the synthetic oracle learns average returns from experience
             returns = np.cumsum(np.asarray(trace.high_returns)[::-1])[::-1]  # line 24, undiscounted
             oracle.observe(states[: len(returns)], goal_obs[goals[: len(returns)]], returns)
-            oracle.train()
+            oracle.train_on_new()  # updates in proportion to the new triples (design decisions: synthetic oracle)
         if self.query_selector.remaining == 0 or len(self.subgoals) < 2 or None in trace.high_privileged:
             return  # no budget, nothing to compare, or an episode played while no question could be asked
         # a question is (an equivalent state, an unordered pair of sub-goals): states the predictor reads alike are

@@ -101,6 +101,7 @@ class SyntheticOracle(OwnRandomState, Oracle):
         self._returns = np.zeros(capacity, dtype=np.float32)
         self._pos = 0
         self._size = 0
+        self._unseen = 0  # triples observed since the last train_on_new
         self._warned_negative = False
 
     # ------------------------------------------------------------------ randomness
@@ -156,6 +157,7 @@ class SyntheticOracle(OwnRandomState, Oracle):
         self._returns[indices] = returns
         self._pos = int((self._pos + len(returns)) % capacity)
         self._size = min(self._size + len(returns), capacity)
+        self._unseen = min(self._unseen + len(returns), self._size)
 
     # ------------------------------------------------------------------ training
     def train(self, n_epochs: Optional[int] = None) -> float:
@@ -170,23 +172,42 @@ class SyntheticOracle(OwnRandomState, Oracle):
         check_int("n_epochs", n_epochs, 1)
         if self._size == 0:
             return math.nan
+        batches = []
+        for _ in range(n_epochs):
+            order = self._np_rng.permutation(self._size)
+            batches.extend(order[start : start + self.batch_size] for start in range(0, self._size, self.batch_size))
+        return self._fit(batches)
+
+    def train_on_new(self) -> float:
+        """``n_epochs`` passes' worth of minibatches over the triples observed since the last call, each minibatch drawn
+        at random from the whole buffer: a call costs what arrived, not the buffer's size (training calls it after
+        every episode, where :meth:`train`'s passes over the whole buffer would cost more with every episode).
+
+        :return: the mean squared error over the minibatches (nan, and nothing trained, when nothing new arrived)
+        """
+        new, self._unseen = self._unseen, 0
+        if new == 0:
+            return math.nan
+        n_batches = math.ceil(self.n_epochs * new / self.batch_size)
+        size = min(self.batch_size, self._size)
+        return self._fit([self._np_rng.choice(self._size, size=size, replace=False) for _ in range(n_batches)])
+
+    def _fit(self, batches: Sequence[np.ndarray]) -> float:
+        """Adam steps on the mean squared error, one per minibatch of buffer indices; their mean loss."""
         total_loss, total_count = 0.0, 0
         self.network.train()
         try:
             with self._torch_rng():
-                for _ in range(n_epochs):
-                    order = self._np_rng.permutation(self._size)
-                    for start in range(0, self._size, self.batch_size):
-                        indices = order[start : start + self.batch_size]
-                        states = torch.as_tensor(self._states[indices], device=self.device)
-                        goals = torch.as_tensor(self._goals[indices], device=self.device)
-                        targets = torch.as_tensor(self._returns[indices], device=self.device)
-                        loss = F.mse_loss(self.network(states, goals), targets)
-                        self.optimizer.zero_grad()
-                        loss.backward()
-                        self.optimizer.step()
-                        total_loss += loss.item() * len(indices)
-                        total_count += len(indices)
+                for indices in batches:
+                    states = torch.as_tensor(self._states[indices], device=self.device)
+                    goals = torch.as_tensor(self._goals[indices], device=self.device)
+                    targets = torch.as_tensor(self._returns[indices], device=self.device)
+                    loss = F.mse_loss(self.network(states, goals), targets)
+                    self.optimizer.zero_grad()
+                    loss.backward()
+                    self.optimizer.step()
+                    total_loss += loss.item() * len(indices)
+                    total_count += len(indices)
         finally:
             self.network.eval()
         return total_loss / total_count
