@@ -160,11 +160,11 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         :data:`~sb3_hhp.hhp.arguments.SUBGOAL_LEARNER_DEFAULTS`
     :param subpolicy_kwargs: the sub-goal learners' SB3 arguments (discrete actions: DQN's names, over
         :data:`~sb3_hhp.hierarchy.learner_kwargs.DEFAULT_SUBPOLICY_KWARGS`; ``buffer_size`` is the shared replay's, in
-        primitive transitions; continuous actions: each sub-goal's SB3 DDPG)
+        primitive transitions; continuous actions: the goal-conditioned SB3 model's, SAC by default)
     :param rnd_kwargs: arguments of :class:`~sb3_hhp.curiosity.rnd.RND` (memory_size M, refresh_interval T, ...)
     :param meta_kwargs: the meta-controller beyond SB3's DQN arguments, over
         :data:`~sb3_hhp.hhp.arguments.META_DEFAULTS` (``n_opt``, the target network's interval in choices, the
-        preference bonus's centring, masks, cycle breaking, ...)
+        preference bonus's centring, masks, cycle breaking, ``discount`` per choice or per primitive step, ...)
     :param learning_rate: the meta-controller's (SB3's DQN); so are ``batch_size``, ``gamma``, the exploration
         schedule (over primitive steps), ``policy_kwargs``, ``tensorboard_log``, ``verbose``, ``seed`` and ``device``
     :param buffer_size: the meta replay R_H, in sub-goal choices
