@@ -232,3 +232,10 @@ def test_predict_ends_task_solved_where_the_target_is_reached_and_chooses_it_aga
     assert state[0][0] == solved and state[1][0] == 2
     _, state = model.predict(away, state=(np.array([solved]), np.array([3])), deterministic=True)
     assert state[0][0] == place
+
+
+def test_a_subgoal_of_the_wrong_shape_names_the_shape_to_pass() -> None:
+    with pytest.raises(ValueError, match=r"subgoals'\]\[0\] has shape \(3,\).*shape \(16,\).*wrap_env"):
+        HhP("MlpPolicy", gym.make(REACH), discovery_kwargs=dict(subgoals=[np.zeros(3)]))
+    obs, _ = wrap_env(gym.make(REACH)).reset(seed=0)
+    assert len(HhP("MlpPolicy", gym.make(REACH), discovery_kwargs=dict(subgoals=[obs])).subgoals) == 1

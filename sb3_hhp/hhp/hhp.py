@@ -443,7 +443,12 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         options.record_images = bool(self.record_images)
         options.return_discount = self.gamma if self.meta_discount == "steps" else None
         if not self.subgoal_set.goals:
-            for goal_obs in self.initial_subgoals:
+            shape = self.primitive_observation_space.shape
+            for index, goal_obs in enumerate(self.initial_subgoals):
+                if goal_obs.shape != shape:
+                    raise ValueError(f"discovery_kwargs['subgoals'][{index}] has shape {goal_obs.shape}; a sub-goal is an "
+                                     f"observation of the env, shape {shape} (pass what env.reset() returns, wrapped as "
+                                     "HhP wraps it: sb3_hhp.goals.wrap_env)")
                 self.add_subgoal(self.goal_space.key(goal_obs), goal_obs, None, source="user")
         self._sync_action_space()
 
