@@ -91,7 +91,7 @@ from sb3_hhp.train import CHECKPOINT_FILE, RESUMED_FILE  # the run folders' file
 class Baseline:
     """A flat baseline of the runner: its algorithm and what it reads of the env.
 
-    :param algorithm: the algorithm's class, ``module:Class``
+    :param algorithm: the algorithm's class, ``module.Class``
     :param hhp_observation: it reads the observation HhP sees (:func:`sb3_hhp.goals.wrap_env`: MiniGrid's egocentric
         view, Fetch's flattened); else the env's own (Fetch: the dict of observation, achieved and desired goal)
     :param her: it relabels its replay in hindsight: its entry names ``replay_buffer_class: HerReplayBuffer``, and
@@ -105,12 +105,12 @@ class Baseline:
 
 #: the flat baselines, in the order of tables and plots
 BASELINES = {
-    "dqn": Baseline("stable_baselines3:DQN"),
-    "ppo": Baseline("stable_baselines3:PPO"),
-    "ppo_rnd": Baseline("stable_baselines3:PPO"),
-    "ddpg": Baseline("stable_baselines3:DDPG", hhp_observation=False),
-    "ddpg_her": Baseline("stable_baselines3:DDPG", hhp_observation=False, her=True),
-    "tqc_her": Baseline("sb3_contrib:TQC", hhp_observation=False, her=True),
+    "dqn": Baseline("stable_baselines3.DQN"),
+    "ppo": Baseline("stable_baselines3.PPO"),
+    "ppo_rnd": Baseline("stable_baselines3.PPO"),
+    "ddpg": Baseline("stable_baselines3.DDPG", hhp_observation=False),
+    "ddpg_her": Baseline("stable_baselines3.DDPG", hhp_observation=False, her=True),
+    "tqc_her": Baseline("sb3_contrib.TQC", hhp_observation=False, her=True),
 }
 #: the variants a sweep may name, in the order of tables and plots
 VARIANTS = ("hhp", *BASELINES)
@@ -140,16 +140,16 @@ KEY_COLUMNS = ("env", "variant", "seed", "steps")
 #: keys of a baseline entry read by the runner, as RL Zoo reads them (``vec_rnd``: ppo_rnd's curiosity); the rest go
 #: to the algorithm's constructor
 BASELINE_RUNNER_KEYS = ("n_envs", "policy", "vec_rnd", "normalize", "noise_type", "noise_std")
-#: the replay buffers a baseline entry may name (``replay_buffer_class``), by name: ``module:Class``
+#: the replay buffers a baseline entry may name (``replay_buffer_class``), by name: ``module.Class``
 REPLAY_BUFFERS = {
-    "ReplayBuffer": "stable_baselines3.common.buffers:ReplayBuffer",
-    "DictReplayBuffer": "stable_baselines3.common.buffers:DictReplayBuffer",
-    "HerReplayBuffer": "stable_baselines3:HerReplayBuffer",
+    "ReplayBuffer": "stable_baselines3.common.buffers.ReplayBuffer",
+    "DictReplayBuffer": "stable_baselines3.common.buffers.DictReplayBuffer",
+    "HerReplayBuffer": "stable_baselines3.HerReplayBuffer",
 }
-#: the action noises a baseline entry may name (``noise_type``, with ``noise_std``), RL Zoo's names: ``module:Class``
+#: the action noises a baseline entry may name (``noise_type``, with ``noise_std``), RL Zoo's names: ``module.Class``
 ACTION_NOISES = {
-    "normal": "stable_baselines3.common.noise:NormalActionNoise",
-    "ornstein-uhlenbeck": "stable_baselines3.common.noise:OrnsteinUhlenbeckActionNoise",
+    "normal": "stable_baselines3.common.noise.NormalActionNoise",
+    "ornstein-uhlenbeck": "stable_baselines3.common.noise.OrnsteinUhlenbeckActionNoise",
 }
 #: the keys of a goal env's dict observation, which hindsight relabels (SB3's ``HerReplayBuffer``)
 GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
@@ -549,14 +549,6 @@ def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> 
     }
 
 
-def _load(name: str) -> Any:
-    """The object ``module:attribute`` names (an algorithm, a replay buffer, an action noise)."""
-    import importlib
-
-    module, _, attribute = name.partition(":")
-    return getattr(importlib.import_module(module), attribute)
-
-
 def _baseline_envs(env_id: str, baseline: Baseline, n_envs: int, seed: Optional[int] = None) -> Any:
     """A VecEnv of ``n_envs`` envs (each in a ``Monitor``) with the observation ``baseline`` reads."""
     from stable_baselines3.common.env_util import make_vec_env
@@ -597,21 +589,23 @@ def _constructor_arguments(settings: dict[str, Any], runner: dict[str, Any], act
     import copy
 
     import numpy as np
+    from rl_zoo3.utils import get_class_by_name
 
     arguments = copy.deepcopy(settings)  # the algorithm adds to its policy_kwargs; the run's summary keeps the entry's
     if "replay_buffer_class" in arguments:
-        arguments["replay_buffer_class"] = _load(REPLAY_BUFFERS[arguments["replay_buffer_class"]])
+        arguments["replay_buffer_class"] = get_class_by_name(REPLAY_BUFFERS[arguments["replay_buffer_class"]])
     if isinstance(arguments.get("train_freq"), list):
         arguments["train_freq"] = tuple(arguments["train_freq"])
     if runner.get("noise_type") is not None:
         shape = action_space.shape
-        arguments["action_noise"] = _load(ACTION_NOISES[runner["noise_type"]])(
+        arguments["action_noise"] = get_class_by_name(ACTION_NOISES[runner["noise_type"]])(
             mean=np.zeros(shape), sigma=float(runner["noise_std"]) * np.ones(shape))
     return arguments
 
 
 def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, Any]:
     import torch as th
+    from rl_zoo3.utils import get_class_by_name
     from stable_baselines3.common.callbacks import CallbackList, EvalCallback
     from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
     from stable_baselines3.common.vec_env import VecNormalize
@@ -645,7 +639,7 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
         vec_rnd = dict(vec_rnd or {})
         vec_rnd["rnd_kwargs"] = {"seed": experiment.seed, **(vec_rnd.get("rnd_kwargs") or {})}
         env = VecRNDReward(env, **vec_rnd)
-    algo = _load(baseline.algorithm)
+    algo = get_class_by_name(baseline.algorithm)
     part_folder = log_folder  # where this part's periodic evaluations go
     if checkpoint is None:
         model = algo(policy, env, seed=experiment.seed, device="cpu", verbose=0,

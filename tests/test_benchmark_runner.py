@@ -170,10 +170,12 @@ def test_the_fetch_baselines_settings_are_their_algorithms_arguments(variant, en
     replay buffer is the one the variant's name says."""
     import inspect
 
-    from benchmarks.run import BASELINE_RUNNER_KEYS, BASELINES, _load, baseline_settings
+    from rl_zoo3.utils import get_class_by_name
+
+    from benchmarks.run import BASELINE_RUNNER_KEYS, BASELINES, baseline_settings
 
     settings = baseline_settings(str(EXPERIMENTS.parents[1] / "sb3_hhp" / "hyperparams" / "baselines.yml"), variant, env)
-    arguments = inspect.signature(_load(BASELINES[variant].algorithm)).parameters
+    arguments = inspect.signature(get_class_by_name(BASELINES[variant].algorithm)).parameters
     assert set(settings) - set(BASELINE_RUNNER_KEYS) <= set(arguments), set(settings) - set(arguments)
     assert settings["policy"] == "MultiInputPolicy" and not BASELINES[variant].hhp_observation
     assert (settings["replay_buffer_class"] == "HerReplayBuffer") == variant.endswith("_her")

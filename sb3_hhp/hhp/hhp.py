@@ -567,10 +567,10 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
             next_obs = maybe_transpose(option.next_obs[None], self.observation_space)
             done = option.terminated or option.truncated
             info = {"TimeLimit.truncated": option.truncated and not option.terminated}
-            if getattr(self, "_bonus_valid", None) is not None and replay_buffer is self.replay_buffer:
-                self._bonus_valid[replay_buffer.pos] = False  # the row's cached bonus belongs to the choice it held
             if replay_buffer is self.replay_buffer:
-                self._choice_steps[replay_buffer.pos] = max(1, option.steps)
+                if getattr(self, "_bonus_valid", None) is not None:
+                    self._bonus_valid[replay_buffer.pos] = False  # the row's cached bonus belonged to the choice it held
+                self._choice_steps[replay_buffer.pos] = option.steps  # >= 1: an option ends after a step at least
             replay_buffer.add(obs, next_obs, np.array([[option.goal]]),
                               np.array([option.extrinsic_return], dtype=np.float32), np.array([done]), [info])
             self._on_step()

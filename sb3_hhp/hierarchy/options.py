@@ -171,18 +171,16 @@ class OptionRunner:
     :param learn: store every transition in the learners' replay, curiosity, visits and the episodes' traces (False:
         the learners only act, frozen, as in :class:`~sb3_hhp.hierarchy.semi_mdp.HierarchicalEnv`)
     :param deterministic: the learners act greedily (else epsilon-greedy, or with their action noise)
-    :param return_discount: an option's return R_e is ``sum_i return_discount^i r_i`` over its primitive steps (None:
-        the plain sum, the paper's)
     """
 
     def __init__(self, venv: VecEnv, goal_space: GoalSpace, subgoals: SubgoalSet, learners: Any, rnd: Optional[RND],
                  max_subgoal_steps: int = 50, record_images: bool = False, learn: bool = True,
-                 deterministic: bool = False, return_discount: Optional[float] = None) -> None:
+                 deterministic: bool = False) -> None:
         if max_subgoal_steps < 1:
             raise ValueError(f"max_subgoal_steps must be >= 1, got {max_subgoal_steps}")
-        if return_discount is not None and not 0.0 <= return_discount <= 1.0:
-            raise ValueError(f"return_discount must be in [0, 1] or None, got {return_discount}")
-        self.return_discount = return_discount
+        #: an option's return R_e is ``sum_i return_discount^i r_i`` over its primitive steps (None: the plain sum, the
+        #: paper's); HhP sets its gamma here with ``meta_kwargs["discount"] = "steps"``
+        self.return_discount: Optional[float] = None
         self.venv = check_vec_env(venv)
         self.goal_space, self.subgoals, self.learners, self.rnd = goal_space, subgoals, learners, rnd
         self.max_subgoal_steps = max_subgoal_steps
@@ -308,12 +306,12 @@ class OptionRunner:
         intrinsic = (self.rnd.intrinsic_reward(final_obs) if self.rnd is not None else np.zeros(n)).astype(np.float32)
         self.learners.observe(obs, actions, final_obs, keys, terminated, truncated, gave_up, acting, intrinsic)
         visits = self.subgoals.visits
-        if self.goal_space.facts_per_step and self.record_privileged:  # each step's state, as a question may name it
-            for i in range(n):
-                self.traces[i].low_privileged.append(self.goal_space.snapshot(env_view(self.venv, i)))
+        snapshots = self.goal_space.facts_per_step and self.record_privileged  # a question may name any step's state
         for i in range(n):
             visits[keys[i]] += 1
             trace = self.traces[i]
+            if snapshots:
+                trace.low_privileged.append(self.goal_space.snapshot(env_view(self.venv, i)))
             trace.low_obs.append(final_obs[i])
             trace.low_keys.append(keys[i])
             trace.intrinsic.append(float(intrinsic[i]))
