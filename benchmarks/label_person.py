@@ -187,14 +187,16 @@ def fill_store_fetch(store: PreferenceStore, n_questions: int, seed: int, env_id
         obs, _ = env.reset(seed=seed + episode)
         for step in range(env.spec.max_episode_steps or 50):
             key = goal_space.terminal_key(obs, 0.0, False)  # the task's goal where the target is reached
-            if key not in found and (
+            new = key not in found and (
                 key == SUCCESS_KEY
                 or not found
                 or goal_space.similarity(key, obs, list(found), None).max() < 0.5  # the discovery gate, b_similarity
-            ):
-                found[key] = (obs, image(obs))
+            )
+            picture = image(obs) if new or step % 10 == 0 else None  # one render a state
+            if new:
+                found[key] = (obs, picture)
             if step % 10 == 0:
-                states.append((obs, image(obs)))
+                states.append((obs, picture))
             obs, *_ = env.step(env.action_space.sample())
     env.close()
     keys = put_subgoals(store, goal_space, {key: frame for key, (_, frame) in found.items()})

@@ -47,17 +47,17 @@ def make_oracle(
             from sb3_hhp.oracles.fetch import FetchScriptedOracle
 
             oracle = FetchScriptedOracle(**kwargs)
-        elif goal_space.name == "image" and getattr(goal_space, "game", None) == MONTEZUMA:
+        elif goal_space.name == "image":
+            game = getattr(goal_space, "game", None)
+            if game != MONTEZUMA:
+                served = f"the ALE game {game!r}" if game else "this env (not an ALE game, or a goal space not bound to one)"
+                raise ValueError(
+                    f"There is no scripted oracle for the 'image' goal space on {served}: only ALE Montezuma's Revenge "
+                    "has one (an ImageGoalSpace bound to it, ImageGoalSpace.bind(env)); use 'synthetic', 'web' or 'terminal'"
+                )
             from sb3_hhp.oracles.montezuma import MontezumaScriptedOracle
 
             oracle = MontezumaScriptedOracle(**kwargs)
-        elif goal_space.name == "image":
-            game = getattr(goal_space, "game", None)
-            served = f"the ALE game {game!r}" if game else "this env (not an ALE game, or a goal space not bound to one)"
-            raise ValueError(
-                f"There is no scripted oracle for the 'image' goal space on {served}: only ALE Montezuma's Revenge has "
-                "one (an ImageGoalSpace bound to it, ImageGoalSpace.bind(env)); use 'synthetic', 'web' or 'terminal'"
-            )
         else:
             raise ValueError(
                 f"There is no scripted oracle for the {goal_space.name!r} goal space: use 'synthetic', 'web' or 'terminal'"
