@@ -1498,3 +1498,25 @@ def test_with_discount_steps_an_option_is_discounted_by_its_primitive_steps(tmp_
 def test_an_unknown_discount_is_refused() -> None:
     with pytest.raises(ValueError, match="discount.*'choice', 'steps'"):
         make_model(meta_kwargs=dict(discount="primitive"))
+
+
+def test_per_step_snapshots_are_of_each_steps_own_episode() -> None:
+    """A goal space with ``facts_per_step`` gets a snapshot of every step's state, in order; an episode's last state is
+    gone when its step returns (the env was reset), so its step has none rather than the next episode's first state."""
+
+    class Stepwise(MiniGridGoalSpace):
+        facts_per_step = True
+
+        def snapshot(self, env):
+            return {**super().snapshot(env), "step": int(env.unwrapped.step_count)}
+
+    model = HhP("MlpPolicy", gym.make(EMPTY, max_steps=20), goal_space=Stepwise(), **tiny(seed=0, query_budget=10))
+    traces = []
+    discover = model.discover_subgoals
+    model.discover_subgoals = lambda trace: (traces.append(trace), discover(trace))[1]
+    model.learn(200)
+    assert len(traces) >= 3
+    for trace in traces:
+        steps = len(trace.low_obs)
+        assert len(trace.low_privileged) == steps and trace.low_privileged[-1] is None
+        assert [snapshot["step"] for snapshot in trace.low_privileged[:-1]] == list(range(1, steps))

@@ -310,8 +310,9 @@ class OptionRunner:
         for i in range(n):
             visits[keys[i]] += 1
             trace = self.traces[i]
-            if snapshots:
-                trace.low_privileged.append(self.goal_space.snapshot(env_view(self.venv, i)))
+            if snapshots:  # an episode's last state is gone (the env was reset in its step): no facts of it
+                ended = terminated[i] or truncated[i]
+                trace.low_privileged.append(None if ended else self.goal_space.snapshot(env_view(self.venv, i)))
             trace.low_obs.append(final_obs[i])
             trace.low_keys.append(keys[i])
             trace.intrinsic.append(float(intrinsic[i]))
