@@ -12,7 +12,7 @@ from minigrid.core.constants import COLOR_TO_IDX, COLORS, DIR_TO_VEC, OBJECT_TO_
 from minigrid.core.world_object import Ball, Key, Wall
 
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
-from sb3_hhp.goals.minigrid import encode_grid
+from sb3_hhp.goals.minigrid import encode_grid, grid_codes
 from sb3_hhp.goals.minigrid import (BLOCKS, GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, N_OBJECTS, N_STATES, NO_GOAL_SQUARE,
                                     OPEN_DOORS)
 from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query, scripted
@@ -1010,3 +1010,33 @@ def test_the_carried_counterfactual_leaves_out_what_carrying_would_change(doorke
     two_keys[:, 0, 0] = two_keys[:, np.nonzero(obs[..., 0] == KEY)[0][0], np.nonzero(obs[..., 0] == KEY)[1][0]]
     assert not space.carried_counterfactual(CARRYING_KEY_FACING_LOCKED_DOOR, two_keys, actions, two_keys)[0].any()
     np.testing.assert_array_equal(batch[0], obs)  # the caller's arrays are left as they were
+
+
+@pytest.mark.parametrize("env_id, types, states", [
+    ("MiniGrid-DoorKey-8x8-v0", ["wall", "door", "key", "goal"], ["closed", "locked"]),
+    ("MiniGrid-MultiRoom-N4-S5-v0", ["wall", "door", "goal"], ["closed"]),  # its doors are never locked
+    ("MiniGrid-ObstructedMaze-1Dlh-v0", ["wall", "door", "key", "ball", "box"], ["closed", "locked"]),
+    ("MiniGrid-Empty-5x5-v0", ["wall", "goal"], []),
+])
+def test_grid_codes_are_what_the_tasks_grids_hold(env_id: str, types: list, states: list) -> None:
+    """The object types on a task's grids (ObstructedMaze-1Dlh's key only inside its box) and the states other than
+    "open" its doors can take, read from a copy: the env's own layout and random state are left as they were."""
+    base = gym.make(env_id).unwrapped
+    base.reset(seed=3)
+    random_state, cells = base.np_random.bit_generator.state, list(base.grid.grid)
+    found = grid_codes(base)
+    assert found == (sorted(OBJECT_TO_IDX[name] for name in types), sorted(STATE_TO_IDX[name] for name in states))
+    assert base.np_random.bit_generator.state == random_state and base.grid.grid == cells
+
+
+@pytest.mark.parametrize("env_id, view, overview", [
+    ("MiniGrid-DoorKey-8x8-v0", "inner", None),  # 11 x 11 inner cells: all of them
+    ("MiniGrid-DoorKey-16x16-v0", 15, 5),  # 27 x 27: the 15 x 15 around the agent and blocks of the whole canvas
+])
+def test_learner_input_is_derived_from_the_bound_env(env_id: str, view, overview) -> None:
+    env = wrap_env(gym.make(env_id))
+    space = make_goal_space("minigrid", env)  # binds it
+    derived = space.learner_input(env.observation_space)
+    assert derived == dict(view=view, overview=overview, one_hot=[[2, 4, 5, 8], [], [1, 2]])
+    with pytest.raises(ValueError, match="bind the goal space"):
+        MiniGridGoalSpace().learner_input(env.observation_space)

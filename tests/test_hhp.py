@@ -741,6 +741,30 @@ def test_one_hot_learners_read_each_code_as_indicators_and_save_and_load(tmp_pat
     assert _predictions(loaded, sequence) == _predictions(model, sequence)
 
 
+def test_auto_learner_inputs_are_derived_from_the_env_and_save_and_load(tmp_path) -> None:
+    """subgoal_learner_kwargs view, overview, one_hot "auto": on DoorKey-5x5 (a 7 x 7 canvas) the learners read its 5 x 5
+    inner cells, no overview, the walls, doors, keys, goal squares, closed and locked doors its grids hold as
+    indicators: 150 inputs; a saved model keeps "auto" and acts as the one it saved; a goal space that derives nothing
+    refuses "auto", naming the options to give."""
+    model = make_model(subgoal_learner_kwargs=dict(view="auto", overview="auto", one_hot="auto"))
+    model.learn(600)
+    learners = model.subpolicies
+    assert learners.view == "inner" and learners._overview is None and learners._one_hot.n_indicators == 4 + 2
+    assert learners.policy(0).q_net.q_net[0].in_features == 5 * 5 * 6
+    model.save(tmp_path / "auto")
+    loaded = HhP.load(tmp_path / "auto")
+    assert loaded.subgoal_learner_kwargs["one_hot"] == "auto" and loaded.subpolicies._one_hot.n_indicators == 6
+    sequence = _rollout_observations(model, seed=3)
+    assert _predictions(loaded, sequence) == _predictions(model, sequence)
+
+    class Underived(MiniGridGoalSpace):
+        def learner_input(self, observation_space):
+            return None
+
+    with pytest.raises(ValueError, match="view, one_hot 'auto'.*Underived derives none: give them"):
+        HhP("MlpPolicy", gym.make(DOORKEY), goal_space=Underived(), subgoal_learner_kwargs=dict(view="auto", one_hot="auto"))
+
+
 def test_one_hot_learners_with_an_overview_read_the_view_and_the_blocks_and_save_and_load(tmp_path) -> None:
     """subgoal_learner_kwargs view=3, overview=3, one_hot=[11, 0, 3]: the learners read the 3 x 3 cells around the
     agent and the 3 x 3 blocks of the whole 7 x 7 canvas (each its most salient cell), 18 cells of 14 indicators; their

@@ -35,6 +35,12 @@ class GoalSpace(ABC):
         """Learn once what this goal space needs of the env it serves (an env it :meth:`supports`), and check its
         settings against it; raises ``ValueError`` when they do not fit. Default: nothing to learn."""
 
+    def learner_input(self, observation_space: gym.spaces.Space) -> Optional[dict[str, Any]]:
+        """The sub-goal learners' ``view``, ``overview`` and ``one_hot`` that ``"auto"`` in ``subgoal_learner_kwargs``
+        stands for on this goal space's env (observations of ``observation_space``); None: it derives none (the
+        default)."""
+        return None
+
     @abstractmethod
     def key(self, obs: np.ndarray) -> Hashable:
         """The sub-goal key of an observation (the situation it shows)."""

@@ -46,11 +46,16 @@ DISCOVERY_DEFAULTS: dict[str, Any] = dict(strategy="csd", subgoals=None, percent
 #: it decays too (None: own steps only); whether every transition also trains the other sub-goals' learners; whether
 #: they update on every primitive step (None: True for discrete actions); most learners updated in one round; the
 #: learning rounds of one step of the envs in one call; the cells around the agent they read; the one-hot encoding of
-#: each channel; the coarse overview of the observation; the range their TD targets are clipped to
+#: each channel; the coarse overview of the observation (these three may be "auto": :data:`LEARNER_INPUTS`); the range
+#: their TD targets are clipped to
 SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(kind=None, exploration_steps=5_000, exploration_run_steps=None,
                                                 share_experience=True, train_shared=None, max_updates=8,
                                                 grouped_rounds=False, view=None, carry_relabel=0.0, one_hot=None,
                                                 overview=None, target_range=None)
+#: the ``subgoal_learner_kwargs`` that may be "auto": what the learners read, derived from the env by the goal space
+#: (:meth:`~sb3_hhp.goals.base.GoalSpace.learner_input`; MiniGrid: the view and the overview by the grid's size, the
+#: indicators by the objects its grids hold)
+LEARNER_INPUTS = ("view", "overview", "one_hot")
 #: ``meta_kwargs``: the meta-controller beyond SB3's DQN arguments: N_opt updates after each episode (``n_opt``), the
 #: target network's ``target_update_interval`` (in sub-goal choices) and ``tau``, ``exploration_initial_eps``,
 #: ``max_grad_norm``, ``stats_window_size`` (SB3's), the head's initial ``capacity`` (it doubles when full), what it

@@ -36,7 +36,7 @@ from sb3_hhp.discovery.csd import SubgoalDiscovery
 from sb3_hhp.dqn.buffers import buffer_state, load_buffer_state
 from sb3_hhp.dqn.dqn import DoubleDQN
 from sb3_hhp.goals import GoalSpace, MiniGridGoalSpace, make_goal_space, wrap_env
-from sb3_hhp.hhp.arguments import check_grouped, grouped
+from sb3_hhp.hhp.arguments import LEARNER_INPUTS, check_grouped, grouped
 from sb3_hhp.hhp.acting import HierarchicalActing
 from sb3_hhp.hhp.bonus import PreferenceBonus
 from sb3_hhp.hhp.policies import CnnPolicy, DQNPolicy, GoalSpaceFeatures, GridCNN, MlpPolicy, MultiInputPolicy
@@ -349,6 +349,19 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
             f"{space}: use HhP('MlpPolicy', env)"
         )
 
+    def _learner_inputs(self, obs_space: spaces.Space) -> dict[str, Any]:
+        """``subgoal_learner_kwargs`` with each ``"auto"`` of ``view``, ``overview`` and ``one_hot`` replaced by what the
+        goal space derives from the env (:meth:`~sb3_hhp.goals.base.GoalSpace.learner_input`)."""
+        learner = dict(self.subgoal_learner_kwargs)
+        auto = [name for name in LEARNER_INPUTS if isinstance(learner[name], str) and learner[name] == "auto"]
+        if auto:
+            derived = self.goal_space.learner_input(obs_space)
+            if derived is None:
+                raise ValueError(f"subgoal_learner_kwargs {', '.join(auto)} 'auto' are derived from the env by its goal "
+                                 f"space, and {type(self.goal_space).__name__} derives none: give them (or None)")
+            learner.update({name: derived[name] for name in auto})
+        return learner
+
     def _setup_model(self) -> None:
         # the replay R_H holds sub-goal choices, which end at different times in different envs: one stream
         n_envs, self.n_envs = self.n_envs, 1
@@ -374,7 +387,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         self.query_selector = QuerySelector(self.query_budget, **query)
         self.return_normalizer = PreferenceReturnNormalizer(gamma=0.99, rollout_length=64)
         alpha = self.alpha if self.use_curiosity else 0.0
-        learner = self.subgoal_learner_kwargs
+        learner = self._learner_inputs(obs_space)
         discrete = isinstance(self.primitive_action_space, spaces.Discrete)
         if discrete != (self.subgoal_learner in SUBGOAL_LEARNERS):
             raise ValueError(f"subgoal_learner_kwargs kind {self.subgoal_learner!r} does not suit "
