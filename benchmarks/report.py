@@ -390,20 +390,28 @@ class Task(NamedTuple):
     baselines: tuple[Source, ...] = ()
     note: str = ""
     not_run: tuple[str, ...] = ()  # variants (of VARIANT_NAMES) not run on this task yet
+    former: Optional[Source] = None  # HhP with the task's own settings, before one entry served every MiniGrid task
 
 
+#: the method of a task's :attr:`Task.former` row
+FORMER = "HhP, the task's former own entry"
 #: where each task stands: HhP as ``sb3_hhp/hyperparams/hhp.yml`` trains it on that env, and the flat baselines
 SUMMARY = (
-    Task("MiniGrid-DoorKey-8x8-v0", Source("doorkey8x8_entry", "hhp"),
-         (Source("doorkey8x8", "dqn"), Source("doorkey8x8", "ppo"), Source("doorkey8x8", "ppo_rnd"))),
-    Task("MiniGrid-KeyCorridorS4R3-v0", Source("minigrid_tasks", "hhp_one_hot_new_open"),
-         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")), not_run=("dqn",)),
-    Task("MiniGrid-MultiRoom-N12-S10-v0", Source("minigrid_tasks", "hhp_rerun"),
-         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")), not_run=("dqn",)),
+    Task("MiniGrid-DoorKey-8x8-v0", Source("minigrid_entry", "hhp"),
+         (Source("doorkey8x8", "dqn"), Source("doorkey8x8", "ppo"), Source("doorkey8x8", "ppo_rnd")),
+         former=Source("doorkey8x8_entry", "hhp")),
+    Task("MiniGrid-KeyCorridorS4R3-v0", Source("minigrid_entry", "hhp"),
+         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")),
+         former=Source("minigrid_tasks", "hhp_one_hot_new_open")),
+    Task("MiniGrid-MultiRoom-N12-S10-v0", Source("minigrid_entry", "hhp"),
+         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")),
+         former=Source("minigrid_tasks", "hhp_rerun")),
+    # the minigrid entry's settings are those this variant added to the task's former entry, which are the same
     Task("MiniGrid-DoorKey-16x16-v0", Source("minigrid_tasks", "hhp_overview_target_range"),
-         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")), not_run=("dqn",)),
-    Task("MiniGrid-ObstructedMaze-1Q-v1", Source("minigrid_tasks", "hhp"),
-         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")), not_run=("dqn",)),
+         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd"))),
+    Task("MiniGrid-ObstructedMaze-1Q-v1", Source("minigrid_entry", "hhp"),
+         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")),
+         former=Source("minigrid_tasks", "hhp")),
     Task("FetchReach-v4", Source("fetch_reach", "hhp"), (Source("fetch_reach", "ddpg_her"), Source("fetch_reach", "tqc_her"))),
     Task("Fetch Push, PickAndPlace, Slide (the `fetch` entry)", None, note="not run yet"),
     Task("Atari (Montezuma's Revenge, Pitfall, ...; the `atari` entry)", None, note="not run yet"),
@@ -442,15 +450,17 @@ def summary_rows(root: Path = ROOT) -> list[list[str]]:
         if task.hhp is None:
             rows.append([task.env, "HhP", "–", "–", "–", task.note, task.note, "–", "–"])
             continue
-        for index, source in enumerate((task.hhp, *task.baselines)):
+        sources = [(task.hhp, "HhP")] + ([(task.former, FORMER)] if task.former is not None else [])
+        sources += [(source, VARIANT_NAMES.get(source.variant, "HhP")) for source in task.baselines]
+        for index, (source, method) in enumerate(sources):
             if source.sweep not in cache:
                 folder = root / RESULTS / source.sweep
                 cache[source.sweep] = (sweep_results(folder) if (folder / "results.csv").is_file()
                                        else pd.DataFrame(columns=list(REQUIRED_COLUMNS)))
             results = cache[source.sweep]
             runs = results[(results["env"] == task.env) & (results["variant"] == source.variant)]
-            if runs.empty and index > 0 and (source.sweep, source.variant) in planned:
-                rows.append(["", VARIANT_NAMES[source.variant], f"`{source.sweep}`: `{source.variant}`", "–", "–",
+            if runs.empty and (source.sweep, source.variant) in planned:
+                rows.append([task.env if index == 0 else "", method, f"`{source.sweep}`: `{source.variant}`", "–", "–",
                              "not run yet", "not run yet", "–", "–"])
                 continue
             if runs.empty:
@@ -459,7 +469,7 @@ def summary_rows(root: Path = ROOT) -> list[list[str]]:
             met = ["yes" if (runs[column].astype(float) >= TARGET).all() else "no"
                    for column in ("success_det", "success_stoch")]
             rows.append([
-                task.env if index == 0 else "", VARIANT_NAMES.get(source.variant, "HhP"),
+                task.env if index == 0 else "", method,
                 f"`{source.sweep}`: `{source.variant}`", _steps(runs), _seeds(runs["seed"]),
                 _mean_std(runs["success_det"]), _mean_std(runs["success_stoch"]),
                 _mean_std(runs["labels_used"], digits=0), " / ".join(met),

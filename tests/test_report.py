@@ -45,7 +45,7 @@ def test_a_changed_figure_changes_the_page_and_every_summary(tmp_path):
     assert report.write_or_check(root, check=True) == []
     csv_path = root / report.RESULTS / "doorkey8x8_entry" / "results.csv"
     results = pd.read_csv(csv_path)
-    assert results["success_det"].tolist() == [1.0] * 6  # the HhP row of DoorKey-8x8 in the summary
+    assert results["success_det"].tolist() == [1.0] * 6  # DoorKey-8x8's row of its former own entry in the summary
     results.loc[results["seed"] == 0, "success_det"] = 0.5
     results.to_csv(csv_path, index=False)
 
@@ -55,7 +55,8 @@ def test_a_changed_figure_changes_the_page_and_every_summary(tmp_path):
     assert report.main(["--root", str(root)]) == 0
     assert report.write_or_check(root, check=True) == []
 
-    row = "| MiniGrid-DoorKey-8x8-v0 | HhP | `doorkey8x8_entry`: `hhp` | 300,000 | 0-5 | 0.92 ± 0.20 | 1.00 ± 0.00 | 76 ± 3 | no / yes |"
+    row = ("|  | HhP, the task's former own entry | `doorkey8x8_entry`: `hhp` | 300,000 | 0-5 | 0.92 ± 0.20 | 1.00 ± 0.00 | "
+           "76 ± 3 | no / yes |")
     readme = block(root / "README.md", "md")
     assert row in readme and row in (root / report.PAGE).read_text()
     assert block(root / "benchmarks" / "README.md", "md") == readme

@@ -308,34 +308,38 @@ def test_hhp_is_registered_with_rl_zoo() -> None:
         HhP("MlpPolicy", None, _init_setup_model=False, **params)  # every trial's values are HhP's arguments, valid
 
 
-@pytest.mark.parametrize("env_id", ["MiniGrid-DoorKey-16x16-v0", "MiniGrid-KeyCorridorS4R3-v0", "MiniGrid-ObstructedMaze-1Q-v1",
-                                    "MiniGrid-MultiRoom-N12-S10-v0"])
-def test_the_papers_four_minigrid_tasks_have_entries_that_build(env_id: str) -> None:
+#: what the one minigrid entry's learners read on each of the paper's tasks: the view, the overview's blocks, the
+#: indicators (object types and door states its grids hold)
+DERIVED_INPUTS = {
+    "MiniGrid-DoorKey-16x16-v0": (15, (7, 7, 3), 4 + 2),  # walls, doors, keys, goal squares; closed, locked
+    "MiniGrid-KeyCorridorS4R3-v0": (None, None, 4 + 2),  # the 15 x 15 inner canvas; walls, doors, keys, balls
+    "MiniGrid-ObstructedMaze-1Q-v1": (15, (7, 7, 3), 5 + 2),  # boxes too, and the keys they hold
+    "MiniGrid-MultiRoom-N12-S10-v0": (15, (11, 11, 3), 3 + 1),  # walls, doors, goal squares; closed only
+}
+
+
+@pytest.mark.parametrize("env_id", sorted(DERIVED_INPUTS))
+def test_the_papers_four_minigrid_tasks_take_the_one_minigrid_entry(env_id: str) -> None:
     import gymnasium as gym
 
     assert check_env_id(env_id) == env_id  # MultiRoom-N12-S10 is registered by sb3_hhp
     table = yaml.safe_load(default_config_path().read_text())
-    assert select_entry(table, env_id) == env_id and table[env_id]["n_timesteps"] == 2e6
+    # each task's entry is the minigrid entry itself: nothing chosen per task
+    assert select_entry(table, env_id) == env_id and table[env_id] == table["minigrid"]
+    assert table["minigrid"]["n_timesteps"] == 2e6
     hyperparams = {key: value for key, value in table[env_id].items() if key not in ZOO_KEYS}
     model = HhP("MlpPolicy", gym.make(env_id), **{**hyperparams, "oracle": None, "predictor_kwargs": dict(n_masks=2)})
-    if env_id.startswith("MiniGrid-ObstructedMaze"):
-        assert model.goal_space.use_color  # two keys of different colours
+    view, overview, indicators = DERIVED_INPUTS[env_id]
+    learners = model.subpolicies
+    assert learners.view == (view if view is not None else "inner")
+    assert (learners._overview.shape if learners._overview is not None else None) == overview
+    assert learners._one_hot.n_indicators == indicators
+    side = model.observation_space.shape[0] - 2 if view is None else view
+    cells = side * side + (overview[0] * overview[1] if overview else 0)
+    assert learners._template.q_net[0].in_features == cells * indicators
+    assert model.goal_space.keep_doors_open and model.success_bonus == "best"
+    assert model.discovery.percentile_of == "new"
+    assert model.alpha == 0.0 and learners.target_range == (-1.0, 1.0)  # eq. 5's returns alone
     if env_id == "MiniGrid-MultiRoom-N12-S10-v0":
         base = model.env.envs[0].unwrapped
         assert (base.minNumRooms, base.maxNumRooms, base.maxRoomSize, base.width) == (12, 12, 10, 25)
-        # the settings of its development run: open doors stay open for the learners, the learners read 15x15 cells
-        assert model.goal_space.keep_doors_open and model.success_bonus == "best"
-        assert model.subpolicies.view == 15
-    if env_id == "MiniGrid-DoorKey-16x16-v0":
-        # the settings its evaluation seeds learnt with: the learners read 15x15 cells and the 7 x 7 blocks of the whole
-        # 29x29 canvas, as indicators
-        assert model.subpolicies.view == 15 and model.subpolicies._overview.shape == (7, 7, 3)
-        assert model.subpolicies._template.q_net[0].in_features == (15 * 15 + 7 * 7) * 6
-        assert model.goal_space.keep_doors_open and model.success_bonus == "best"
-        assert model.alpha == 0.0 and model.subpolicies.target_range == (-1.0, 1.0)  # eq. 5's returns alone
-    if env_id == "MiniGrid-KeyCorridorS4R3-v0":
-        # the settings its evaluation seeds learnt with: no door closed to reach "facing a closed door", CSD over the
-        # states that could become sub-goals, the learners reading walls, doors, keys, balls, closed, locked as indicators
-        assert model.goal_space.keep_doors_open and model.success_bonus == "best"
-        assert model.discovery.percentile_of == "new"
-        assert model.subpolicies._one_hot is not None and model.subpolicies._one_hot.n_indicators == 6
