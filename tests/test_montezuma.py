@@ -164,6 +164,9 @@ def test_scripted_picks_the_montezuma_oracle_for_an_image_goal_space_bound_to_it
     assert isinstance(make_oracle("scripted", space, env.observation_space), MontezumaScriptedOracle)
     noisy = make_oracle("noisy-scripted", space, env.observation_space, seed=0, rho=0.2)
     assert isinstance(noisy, NoisyOracle) and isinstance(noisy.oracle, MontezumaScriptedOracle)
+    # another oracle's setting (the synthetic oracle's head) is refused, naming what this one takes
+    with pytest.raises(ValueError, match=r"'scripted' oracle \(MontezumaScriptedOracle\) takes no 'head'.*equal_tolerance"):
+        make_oracle("scripted", space, env.observation_space, head="linear")
     pong = gym.make("ALE/Pong-v5")
     other = ImageGoalSpace()
     other.bind(pong)

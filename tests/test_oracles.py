@@ -460,8 +460,8 @@ def test_synthetic_oracle_bad_arguments():
         oracle.observe(np.zeros((4, 3)), np.zeros((4, 2)), np.zeros(4))
     with pytest.raises(ValueError, match="finite"):
         oracle.observe(np.zeros((1, 3)), np.zeros((1, 3)), np.array([np.nan]))
-    with pytest.warns(UserWarning, match="negative returns"):
-        oracle.observe(np.zeros((1, 3)), np.zeros((1, 3)), np.array([-1.0]))
+    with pytest.warns(UserWarning, match="negative returns"):  # the paper's ReLU head reads them as 0
+        SyntheticOracle(space, hidden_dim=8, head="relu").observe(np.zeros((1, 3)), np.zeros((1, 3)), np.array([-1.0]))
     assert math.isnan(SyntheticOracle(space, hidden_dim=8).train())
 
 

@@ -196,20 +196,24 @@ class BetweenEpisodes:
         if not trace.low_obs:
             return []
         goal_space = self.goal_space
-        states = np.stack(trace.low_obs)
+        states, keys = np.stack(trace.low_obs), trace.low_keys
         snapshots = trace.low_privileged if len(trace.low_privileged) == len(states) else [None] * len(states)
+        if len(trace.low_privileged) == len(states):  # questions will carry a sub-goal's facts: only states with them
+            usable = np.flatnonzero([snapshot is not None for snapshot in snapshots])
+            states, keys, snapshots = states[usable], [keys[i] for i in usable], [snapshots[i] for i in usable]
+            if not len(states):
+                return []
         if len(self.subgoals) == 0:  # line 5: a random visited state
             index = int(self.discovery.rng.integers(len(states)))
-            return [self.add_subgoal(trace.low_keys[index], states[index], goal_space.image_of(states[index]), source="random",
+            return [self.add_subgoal(keys[index], states[index], goal_space.image_of(states[index]), source="random",
                                      snapshot=snapshots[index])]
         if self.discovery_strategy == "none" or trace.random:
             return []
         rho = None
         if self.discovery.strategy == "csd":
             rho = self.rnd.novelty_progress(states) if self.rnd is not None else np.zeros(len(states))
-        chosen = self.discovery.select(states, trace.low_keys, rho, self.subgoal_set.visits,
-                                       self.subgoal_set.keys, self.goal_obs)
-        return [self.add_subgoal(trace.low_keys[index], states[index], goal_space.image_of(states[index]),
+        chosen = self.discovery.select(states, keys, rho, self.subgoal_set.visits, self.subgoal_set.keys, self.goal_obs)
+        return [self.add_subgoal(keys[index], states[index], goal_space.image_of(states[index]),
                                  source=self.discovery.strategy, snapshot=snapshots[index]) for index in chosen]
 
     # ------------------------------------------------------------------ curiosity (line 35)

@@ -1,5 +1,6 @@
 """Oracles by name, for ``HhP(oracle="scripted")`` and ``python -m sb3_hhp.train --oracle NAME``."""
 
+import inspect
 from typing import Any, Optional
 
 from gymnasium import spaces
@@ -34,19 +35,37 @@ def make_oracle(
         raise ValueError(f"Unknown oracle {name!r}: use one of {', '.join(ORACLE_NAMES)} or pass an Oracle instance")
     if name == "none":
         return None
+    return _make(name, goal_space, observation_space, store, seed, kwargs)
+
+
+def _checked(cls: type, name: str, kwargs: dict[str, Any], given: tuple[str, ...] = ()) -> dict[str, Any]:
+    """``kwargs`` after checking that ``cls`` (the oracle ``name`` builds) takes each (``given``: set here, not by the
+    caller); a clear error naming the ones it does not take and the ones it does."""
+    accepted = set(inspect.signature(cls.__init__).parameters) - {"self", *given}
+    unknown = sorted(set(kwargs) - accepted)
+    if unknown:
+        raise ValueError(f"The {name!r} oracle ({cls.__name__}) takes no {', '.join(map(repr, unknown))} "
+                         f"(query_kwargs['oracle_kwargs']); it takes {', '.join(sorted(accepted)) or 'none'}")
+    return kwargs
+
+
+def _make(name: str, goal_space: GoalSpace, observation_space: spaces.Space, store: Any, seed: Optional[int],
+          kwargs: dict[str, Any]) -> Oracle:
+    """:func:`make_oracle` for a name other than "none"."""
     if name in ("scripted", "noisy-scripted"):
         rho = kwargs.pop("rho", 0.1)
         if goal_space.name == "minigrid":
             from sb3_hhp.oracles.scripted import MiniGridScriptedOracle
 
+            given = ("use_color", "count_open_doors", "mark_blockers")
             oracle: Oracle = MiniGridScriptedOracle(use_color=getattr(goal_space, "use_color", False),
                                                     count_open_doors=getattr(goal_space, "count_open_doors", False),
                                                     mark_blockers=getattr(goal_space, "mark_blockers", False),
-                                                    **kwargs)
+                                                    **_checked(MiniGridScriptedOracle, name, kwargs, given))
         elif goal_space.name == "fetch":
             from sb3_hhp.oracles.fetch import FetchScriptedOracle
 
-            oracle = FetchScriptedOracle(**kwargs)
+            oracle = FetchScriptedOracle(**_checked(FetchScriptedOracle, name, kwargs))
         elif goal_space.name == "image":
             game = getattr(goal_space, "game", None)
             if game != MONTEZUMA:
@@ -57,7 +76,7 @@ def make_oracle(
                 )
             from sb3_hhp.oracles.montezuma import MontezumaScriptedOracle
 
-            oracle = MontezumaScriptedOracle(**kwargs)
+            oracle = MontezumaScriptedOracle(**_checked(MontezumaScriptedOracle, name, kwargs))
         else:
             raise ValueError(
                 f"There is no scripted oracle for the {goal_space.name!r} goal space: use 'synthetic', 'web' or 'terminal'"
@@ -70,13 +89,14 @@ def make_oracle(
     if name == "synthetic":
         from sb3_hhp.oracles.synthetic import SyntheticOracle
 
-        return SyntheticOracle(observation_space, seed=seed, **kwargs)
+        return SyntheticOracle(observation_space, seed=seed,
+                               **_checked(SyntheticOracle, name, kwargs, ("observation_space", "seed")))
     if name == "web":
         from sb3_hhp.oracles.web import WebOracle
 
         if store is None:
             raise ValueError("The web oracle needs a preference store (preference_db=PATH)")
-        return WebOracle(store, **kwargs)
+        return WebOracle(store, **_checked(WebOracle, name, kwargs, ("store",)))
     from sb3_hhp.oracles.terminal import TerminalOracle
 
-    return TerminalOracle(**kwargs)
+    return TerminalOracle(**_checked(TerminalOracle, name, kwargs))

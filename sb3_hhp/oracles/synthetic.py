@@ -31,9 +31,9 @@ class SyntheticOracle(OwnRandomState, Oracle):
     epochs on a 500K buffer). :meth:`~sb3_hhp.oracles.base.Oracle.answer` compares ``V(s, g1)`` and ``V(s, g2)`` with dropout off.
 
     The network is :class:`~sb3_hhp.preferences.predictor.PreferenceNetwork` (same architecture and
-    hyperparameters as the preference predictor) with a ReLU output, as in the paper, so the
-    estimates are >= 0: with rewards that can be negative (e.g. Fetch's -1 per step) pass
-    ``head="linear"``, or the oracle would see every return as 0 and answer EQUAL.
+    hyperparameters as the preference predictor) with a linear output: the paper's ReLU output (``head="relu"``)
+    estimates every return >= 0, so with rewards that can be negative (Fetch's -1 per step, Pong's and Boxing's
+    points lost) it would see every return as 0 and answer EQUAL.
 
     Randomness (initial weights, dropout, minibatch order) comes from the oracle's own generators,
     derived from ``seed``; the global torch RNG is neither read (when ``seed`` is given) nor changed.
@@ -49,7 +49,7 @@ class SyntheticOracle(OwnRandomState, Oracle):
     :param device: torch device ("cpu", "cuda", "auto")
     :param seed: seed of the oracle's generators; None draws one from the global torch RNG
     :param name: annotator name recorded with every answer
-    :param head: output activation of the network: "relu" (the paper's), "linear" or "sigmoid"
+    :param head: output activation of the network: "linear" (default), "relu" (the paper's) or "sigmoid"
     :param architecture: "auto", "cnn" or "mlp" (see :class:`~sb3_hhp.preferences.predictor.PreferenceNetwork`)
     """
 
@@ -66,7 +66,7 @@ class SyntheticOracle(OwnRandomState, Oracle):
         device: Union[str, torch.device] = "cpu",
         seed: Optional[int] = None,
         name: str = "synthetic",
-        head: str = "relu",
+        head: str = "linear",
         architecture: str = "auto",
     ) -> None:
         super().__init__(name)
