@@ -156,7 +156,11 @@ def test_questions_without_the_ram_facts_are_refused_with_what_is_missing(states
 
 
 def test_scripted_picks_the_montezuma_oracle_for_an_image_goal_space_bound_to_it() -> None:
-    env = montezuma()
+    from stable_baselines3.common.atari_wrappers import AtariWrapper
+
+    with pytest.raises(ValueError, match="raw 210x160 screen: wrap it with .*AtariWrapper"):
+        ImageGoalSpace().bind(montezuma())  # an Atari env without its frame wrapper
+    env = AtariWrapper(montezuma())
     space = ImageGoalSpace()
     space.bind(env)
     assert space.game == "montezuma_revenge"
@@ -167,7 +171,7 @@ def test_scripted_picks_the_montezuma_oracle_for_an_image_goal_space_bound_to_it
     # another oracle's setting (the synthetic oracle's head) is refused, naming what this one takes
     with pytest.raises(ValueError, match=r"'scripted' oracle \(MontezumaScriptedOracle\) takes no 'head'.*equal_tolerance"):
         make_oracle("scripted", space, env.observation_space, head="linear")
-    pong = gym.make("ALE/Pong-v5")
+    pong = AtariWrapper(gym.make("ALE/Pong-v5"))
     other = ImageGoalSpace()
     other.bind(pong)
     assert other.game == "pong" and other.snapshot(pong) == {} and other.facts(other.snapshot(pong)) == {}

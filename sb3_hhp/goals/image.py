@@ -53,6 +53,10 @@ def _channels_first(shape: tuple) -> bool:
     return len(shape) == 3 and is_image_space_channels_first(spaces.Box(0, 255, shape, np.uint8))
 
 
+#: the height and width of an ALE game's own screen, which the image goal space refuses to read unwrapped
+ALE_SCREEN = (210, 160)
+
+
 def ale_game(env: gym.Env) -> Optional[str]:
     """The ROM name of the ALE game underneath ``env`` (``"montezuma_revenge"``), None when it is not an ALE env."""
     base = getattr(env, "unwrapped", env)
@@ -156,6 +160,10 @@ class ImageGoalSpace(GoalSpace):
         """Record the env's ALE game (:attr:`game`: a Montezuma's Revenge env gets its scripted oracle) and check that
         its frames have the reference's shape, which the landmark boxes were checked against."""
         self.game = ale_game(env)
+        if self.game is not None and self._height_width(env.observation_space.shape) == ALE_SCREEN:
+            raise ValueError(f"This ALE env ({self.game}) observes its raw {ALE_SCREEN[0]}x{ALE_SCREEN[1]} screen: wrap it "
+                             "with stable_baselines3.common.atari_wrappers.AtariWrapper (84x84 gray frames, a life lost "
+                             "ending the episode; make_atari_env does it), as the atari entry's env_wrapper does")
         self.facts_per_step = self.game == MONTEZUMA  # 8 bytes of RAM a step
         if self.landmarks is not None:
             self._check_frame(self.frame(np.zeros(env.observation_space.shape, dtype=np.uint8)), "the env observes")
