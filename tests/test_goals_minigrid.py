@@ -1012,21 +1012,28 @@ def test_the_carried_counterfactual_leaves_out_what_carrying_would_change(doorke
     np.testing.assert_array_equal(batch[0], obs)  # the caller's arrays are left as they were
 
 
-@pytest.mark.parametrize("env_id, types, states", [
-    ("MiniGrid-DoorKey-8x8-v0", ["wall", "door", "key", "goal"], ["closed", "locked"]),
-    ("MiniGrid-MultiRoom-N4-S5-v0", ["wall", "door", "goal"], ["closed"]),  # its doors are never locked
-    ("MiniGrid-ObstructedMaze-1Dlh-v0", ["wall", "door", "key", "ball", "box"], ["closed", "locked"]),
-    ("MiniGrid-Empty-5x5-v0", ["wall", "goal"], []),
+@pytest.mark.parametrize("env_id, types, states, key_colors", [
+    ("MiniGrid-DoorKey-8x8-v0", ["wall", "door", "key", "goal"], ["closed", "locked"], 1),
+    ("MiniGrid-MultiRoom-N4-S5-v0", ["wall", "door", "goal"], ["closed"], 0),  # its doors are never locked
+    ("MiniGrid-ObstructedMaze-1Dlh-v0", ["wall", "door", "key", "ball", "box"], ["closed", "locked"], 1),
+    ("MiniGrid-ObstructedMaze-1Q-v1", ["wall", "door", "key", "ball", "box"], ["closed", "locked"], 2),
+    ("MiniGrid-Empty-5x5-v0", ["wall", "goal"], [], 0),
 ])
-def test_grid_codes_are_what_the_tasks_grids_hold(env_id: str, types: list, states: list) -> None:
-    """The object types on a task's grids (ObstructedMaze-1Dlh's key only inside its box) and the states other than
-    "open" its doors can take, read from a copy: the env's own layout and random state are left as they were."""
+def test_grid_codes_are_what_the_tasks_grids_hold(env_id: str, types: list, states: list, key_colors: int) -> None:
+    """The object types on a task's grids (ObstructedMaze-1Dlh's key only inside its box), the states other than "open"
+    its doors can take and the most colours of keys in one layout, read from a copy: the env's own layout and random
+    state are left as they were. With use_color "auto" the goal space reads colours where keys have several."""
     base = gym.make(env_id).unwrapped
     base.reset(seed=3)
     random_state, cells = base.np_random.bit_generator.state, list(base.grid.grid)
     found = grid_codes(base)
-    assert found == (sorted(OBJECT_TO_IDX[name] for name in types), sorted(STATE_TO_IDX[name] for name in states))
+    assert found.types == sorted(OBJECT_TO_IDX[name] for name in types)
+    assert found.states == sorted(STATE_TO_IDX[name] for name in states) and found.key_colors == key_colors
     assert base.np_random.bit_generator.state == random_state and base.grid.grid == cells
+    space = MiniGridGoalSpace(use_color="auto")
+    assert space.use_color is False  # until bound
+    space.bind(base)
+    assert space.use_color is (key_colors > 1)
 
 
 @pytest.mark.parametrize("env_id, view, overview", [
@@ -1040,3 +1047,5 @@ def test_learner_input_is_derived_from_the_bound_env(env_id: str, view, overview
     assert derived == dict(view=view, overview=overview, one_hot=[[2, 4, 5, 8], [], [1, 2]])
     with pytest.raises(ValueError, match="bind the goal space"):
         MiniGridGoalSpace().learner_input(env.observation_space)
+    with pytest.raises(ValueError, match="use_color must be True, False or 'auto'"):
+        MiniGridGoalSpace(use_color="yes")

@@ -338,6 +338,7 @@ def test_the_papers_four_minigrid_tasks_take_the_one_minigrid_entry(env_id: str)
     cells = side * side + (overview[0] * overview[1] if overview else 0)
     assert learners._template.q_net[0].in_features == cells * indicators
     assert model.goal_space.keep_doors_open and model.success_bonus == "best"
+    assert model.goal_space.use_color == (env_id == "MiniGrid-ObstructedMaze-1Q-v1")  # two keys of different colours
     assert model.discovery.percentile_of == "new"
     assert model.alpha == 0.0 and learners.target_range == (-1.0, 1.0)  # eq. 5's returns alone
     if env_id == "MiniGrid-MultiRoom-N12-S10-v0":

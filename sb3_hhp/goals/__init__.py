@@ -14,7 +14,7 @@ GOAL_SPACES: dict[str, type[GoalSpace]] = {"minigrid": MiniGridGoalSpace, "fetch
 #: goal spaces with settings, by name (for the YAML): MiniGrid keys that tell objects apart by colour (several keys)
 NAMED_GOAL_SPACES = {
     "minigrid_color": lambda: MiniGridGoalSpace(use_color=True),
-    "minigrid_open_doors": lambda: MiniGridGoalSpace(keep_doors_open=True),
+    "minigrid_open_doors": lambda: MiniGridGoalSpace(use_color="auto", keep_doors_open=True),
     "minigrid_count_doors": lambda: MiniGridGoalSpace(keep_doors_open=True, count_open_doors=True),
     "minigrid_color_open_doors": lambda: MiniGridGoalSpace(use_color=True, keep_doors_open=True),
     "minigrid_open_doors_blockers": lambda: MiniGridGoalSpace(keep_doors_open=True, mark_blockers=True),

@@ -17,7 +17,7 @@ sub-goal is reached without access to the environment.
 import copy
 from collections.abc import Callable, Hashable, Sequence
 from itertools import chain
-from typing import Any, Optional, Union
+from typing import Any, NamedTuple, Optional, Union
 
 import cv2
 import gymnasium as gym
@@ -78,12 +78,22 @@ LEARNER_VIEW = 15
 LEARNER_OVERVIEW = 5
 
 
-def grid_codes(base: MiniGridEnv, layouts: int = BOUND_LAYOUTS) -> tuple[list[int], list[int]]:
+class GridCodes(NamedTuple):
+    """What the grids of a task hold (:func:`grid_codes`)."""
+
+    #: the object types found on the grid, in its boxes or carried, sorted
+    types: list[int]
+    #: the states other than "open" its objects can take (a door can be closed, and locked where one was found locked)
+    states: list[int]
+    #: the most colours of keys one layout held
+    key_colors: int
+
+
+def grid_codes(base: MiniGridEnv, layouts: int = BOUND_LAYOUTS) -> GridCodes:
     """What the grids of ``base``'s task hold, over ``layouts`` layouts drawn by a copy of it (``base`` itself is not
-    reset): the object types found on the grid, in its boxes or carried, and the states other than "open" its objects
-    can take (a door can be closed, and locked where one was found locked), both sorted."""
+    reset)."""
     env = copy.deepcopy(base)
-    types, states = set(), set()
+    types, states, key_colors = set(), set(), 0
     for seed in range(layouts):
         env.reset(seed=seed)
         objects = [obj for obj in [*env.grid.grid, env.carrying] if obj is not None]
@@ -93,7 +103,8 @@ def grid_codes(base: MiniGridEnv, layouts: int = BOUND_LAYOUTS) -> tuple[list[in
             types.add(kind)
             if kind == DOOR:
                 states.update({CLOSED, state} - {OPEN})
-    return sorted(types), sorted(states)
+        key_colors = max(key_colors, len({obj.color for obj in objects if obj.type == "key"}))
+    return GridCodes(sorted(types), sorted(states), key_colors)
 
 
 #: the paper's MultiRoom task, which MiniGrid does not register: 12 rooms of at most 10x10 cells (a 25x25 grid,
@@ -248,7 +259,9 @@ class MiniGridGoalSpace(GoalSpace):
     """Sub-goal key = (carried object, object in front, its state), read off a
     :class:`MiniGridEgocentricObs` observation; colours are ignored unless ``use_color``.
 
-    :param use_color: distinguish objects by colour (needed when colours matter, e.g. several keys)
+    :param use_color: distinguish objects by colour (needed when colours matter, e.g. several keys); ``"auto"``: where
+        the task's grids hold keys of more than one colour (ObstructedMaze: two keys, one for the door), read when the
+        goal space is bound to the env (:meth:`bind`; False until then)
     :param tile_size: pixels per cell of the rendered images shown to people
     :param keep_doors_open: the sub-goal learners never close the door in front (``toggle`` is masked there, in acting
         and in their targets): a key names *a* closed door, not which, so the learner of "facing a closed door"
@@ -274,16 +287,20 @@ class MiniGridGoalSpace(GoalSpace):
     #: what the env's grids hold (:meth:`bind`, :func:`grid_codes`): object types, and states other than "open"
     object_codes: Optional[list[int]] = None
     state_codes: Optional[list[int]] = None
+    color_from_env = False  # use_color "auto": set by bind
     keep_doors_open = False  # what a goal space pickled before the options reads
     count_open_doors = False
     mark_blockers = False
     count_blockers = False
 
-    def __init__(self, use_color: bool = False, tile_size: int = 16, keep_doors_open: bool = False,
+    def __init__(self, use_color: Union[bool, str] = False, tile_size: int = 16, keep_doors_open: bool = False,
                  count_open_doors: bool = False, mark_blockers: bool = False, count_blockers: bool = False) -> None:
         if tile_size < 1:
             raise ValueError(f"tile_size must be >= 1, got {tile_size}")
-        self.use_color = use_color
+        if not isinstance(use_color, bool) and use_color != "auto":
+            raise ValueError(f"use_color must be True, False or 'auto' (from the env's keys), got {use_color!r}")
+        self.color_from_env = use_color == "auto"
+        self.use_color = use_color is True
         self.tile_size = tile_size
         self.keep_doors_open = bool(keep_doors_open)
         self.count_open_doors = bool(count_open_doors)
@@ -315,8 +332,12 @@ class MiniGridGoalSpace(GoalSpace):
 
     def bind(self, env: gym.Env) -> None:
         """Record which object types and states the env's grids hold (:func:`grid_codes`, from a copy of the env):
-        what :meth:`learner_input` gives the sub-goal learners to read as indicators."""
-        self.object_codes, self.state_codes = grid_codes(find_minigrid(env))
+        what :meth:`learner_input` gives the sub-goal learners to read as indicators; with ``use_color`` "auto",
+        whether colours are read."""
+        codes = grid_codes(find_minigrid(env))
+        self.object_codes, self.state_codes = codes.types, codes.states
+        if self.color_from_env:
+            self.use_color = codes.key_colors > 1
 
     def learner_input(self, observation_space: spaces.Space) -> dict[str, Any]:
         """The sub-goal learners' ``view``, ``overview`` and ``one_hot`` (``subgoal_learner_kwargs``) that ``"auto"``
