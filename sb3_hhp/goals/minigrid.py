@@ -70,9 +70,8 @@ DIM = 0.45
 
 #: layouts :meth:`MiniGridGoalSpace.bind` draws (from a copy of the env, seeds 0, 1, ...) to learn what its grids hold
 BOUND_LAYOUTS = 4
-#: the sub-goal learners' ``view: auto`` on a canvas whose inner cells are wider than this: the cells around the agent
-#: (DoorKey-16x16: a learner alone walked to the key from fresh layouts in 0.78-0.88 of its tries with 15 x 15 cells,
-#: 0.50 with the whole 29 x 29 canvas); on a narrower one, every inner cell (docs/design_decisions.rst)
+#: the sub-goal learners' ``view: auto`` on a canvas whose inner cells are wider than this: the cells around the agent;
+#: on a narrower one, every inner cell (docs/design_decisions.rst: the view of the learners)
 LEARNER_VIEW = 15
 #: the sub-goal learners' ``overview: auto`` where the view leaves cells out: blocks of 5 x 5 cells of the whole canvas
 LEARNER_OVERVIEW = 5

@@ -196,13 +196,14 @@ class BetweenEpisodes:
         if not trace.low_obs:
             return []
         goal_space = self.goal_space
-        states, keys = np.stack(trace.low_obs), trace.low_keys
-        snapshots = trace.low_privileged if len(trace.low_privileged) == len(states) else [None] * len(states)
-        if len(trace.low_privileged) == len(states):  # questions will carry a sub-goal's facts: only states with them
+        states, keys, snapshots = np.stack(trace.low_obs), trace.low_keys, trace.low_privileged
+        if len(snapshots) == len(states):  # questions will carry a sub-goal's facts: only states with them
             usable = np.flatnonzero([snapshot is not None for snapshot in snapshots])
             states, keys, snapshots = states[usable], [keys[i] for i in usable], [snapshots[i] for i in usable]
             if not len(states):
                 return []
+        else:
+            snapshots = [None] * len(states)
         if len(self.subgoals) == 0:  # line 5: a random visited state
             index = int(self.discovery.rng.integers(len(states)))
             return [self.add_subgoal(keys[index], states[index], goal_space.image_of(states[index]), source="random",

@@ -35,33 +35,15 @@ def make_oracle(
         raise ValueError(f"Unknown oracle {name!r}: use one of {', '.join(ORACLE_NAMES)} or pass an Oracle instance")
     if name == "none":
         return None
-    return _make(name, goal_space, observation_space, store, seed, kwargs)
-
-
-def _checked(cls: type, name: str, kwargs: dict[str, Any], given: tuple[str, ...] = ()) -> dict[str, Any]:
-    """``kwargs`` after checking that ``cls`` (the oracle ``name`` builds) takes each (``given``: set here, not by the
-    caller); a clear error naming the ones it does not take and the ones it does."""
-    accepted = set(inspect.signature(cls.__init__).parameters) - {"self", *given}
-    unknown = sorted(set(kwargs) - accepted)
-    if unknown:
-        raise ValueError(f"The {name!r} oracle ({cls.__name__}) takes no {', '.join(map(repr, unknown))} "
-                         f"(query_kwargs['oracle_kwargs']); it takes {', '.join(sorted(accepted)) or 'none'}")
-    return kwargs
-
-
-def _make(name: str, goal_space: GoalSpace, observation_space: spaces.Space, store: Any, seed: Optional[int],
-          kwargs: dict[str, Any]) -> Oracle:
-    """:func:`make_oracle` for a name other than "none"."""
     if name in ("scripted", "noisy-scripted"):
         rho = kwargs.pop("rho", 0.1)
         if goal_space.name == "minigrid":
             from sb3_hhp.oracles.scripted import MiniGridScriptedOracle
 
-            given = ("use_color", "count_open_doors", "mark_blockers")
-            oracle: Oracle = MiniGridScriptedOracle(use_color=getattr(goal_space, "use_color", False),
-                                                    count_open_doors=getattr(goal_space, "count_open_doors", False),
-                                                    mark_blockers=getattr(goal_space, "mark_blockers", False),
-                                                    **_checked(MiniGridScriptedOracle, name, kwargs, given))
+            matched = {option: getattr(goal_space, option, False)  # the goal space's key options, which it must match
+                       for option in ("use_color", "count_open_doors", "mark_blockers")}
+            oracle: Oracle = MiniGridScriptedOracle(**matched, **_checked(MiniGridScriptedOracle, name, kwargs,
+                                                                          tuple(matched)))
         elif goal_space.name == "fetch":
             from sb3_hhp.oracles.fetch import FetchScriptedOracle
 
@@ -100,3 +82,14 @@ def _make(name: str, goal_space: GoalSpace, observation_space: spaces.Space, sto
     from sb3_hhp.oracles.terminal import TerminalOracle
 
     return TerminalOracle(**_checked(TerminalOracle, name, kwargs))
+
+
+def _checked(cls: type, name: str, kwargs: dict[str, Any], given: tuple[str, ...] = ()) -> dict[str, Any]:
+    """``kwargs`` after checking that ``cls`` (the oracle ``name`` builds) takes each (``given``: set here, not by the
+    caller); a clear error naming the ones it does not take and the ones it does."""
+    accepted = set(inspect.signature(cls.__init__).parameters) - {"self", *given}
+    unknown = sorted(set(kwargs) - accepted)
+    if unknown:
+        raise ValueError(f"The {name!r} oracle ({cls.__name__}) takes no {', '.join(map(repr, unknown))} "
+                         f"(query_kwargs['oracle_kwargs']); it takes {', '.join(sorted(accepted)) or 'none'}")
+    return kwargs
