@@ -196,7 +196,7 @@ class BetweenEpisodes:
         if not trace.low_obs:
             return []
         goal_space = self.goal_space
-        states, keys, snapshots = np.stack(trace.low_obs), trace.low_keys, trace.low_privileged
+        states, keys, snapshots = trace.low_states(), trace.low_keys, trace.low_privileged
         if len(snapshots) == len(states):  # questions will carry a sub-goal's facts: only states with them
             usable = np.flatnonzero([snapshot is not None for snapshot in snapshots])
             states, keys, snapshots = states[usable], [keys[i] for i in usable], [snapshots[i] for i in usable]
@@ -222,7 +222,7 @@ class BetweenEpisodes:
         """Train the RND predictor on the episode's states."""
         if self.rnd is None or not trace.low_obs:
             return
-        loss = self.rnd.update(np.stack(trace.low_obs), n_epochs=n_epochs)
+        loss = self.rnd.update(trace.low_states(), n_epochs=n_epochs)
         self.logger.record("hhp/rnd_loss", loss)
 
     # ------------------------------------------------------------------ resuming, the gallery

@@ -87,6 +87,13 @@ class EpisodeTrace:
     low_privileged: list = field(default_factory=list)  # snapshots of every primitive step (``facts_per_step``)
     random: bool = False  # the random-action episode that seeds G (Algorithm 1 line 5)
 
+    def low_states(self) -> np.ndarray:
+        """``low_obs`` as one array, stacked once for the between-episode steps that read it (discovery, RND)."""
+        stacked = self.__dict__.get("_low_states")
+        if stacked is None or len(stacked) != len(self.low_obs):
+            stacked = self.__dict__["_low_states"] = np.stack(self.low_obs)
+        return stacked
+
 
 @dataclass
 class OptionEnd:
