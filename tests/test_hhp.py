@@ -20,6 +20,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import DummyVecEnv, VecFrameStack, VecNormalize
 
 from sb3_hhp import HhP
+from sb3_hhp.dqn.dqn import DoubleDQN
 from sb3_hhp.goals import MiniGridGoalSpace, wrap_env
 from sb3_hhp.hhp.hhp import COMPONENTS_FILE
 from sb3_hhp.hierarchy.encoders import OneHotCodes, Overview
@@ -660,6 +661,8 @@ def test_save_load_round_trip(trained: HhP, tmp_path) -> None:
          r"meta_kwargs\['success_bonus'\] must be one of 'predicted', 'best', got 'neutral'"),
         (dict(env=EMPTY, meta_kwargs=dict(exact_bonus="yes")), r"meta_kwargs\['exact_bonus'\] must be one of True, False"),
         (dict(env=EMPTY, meta_kwargs=dict(n_opt=0)), r"meta_kwargs\['n_opt'\] must be >= 1, got 0"),
+        (dict(env=EMPTY, meta_kwargs=dict(steps_per_update=0)),
+         r"meta_kwargs\['steps_per_update'\] must be an integer >= 1 \(or None\), got 0"),
         (dict(env=EMPTY, meta_kwargs=dict(tau=0.5, wizard=1)), "meta_kwargs has no key 'wizard'; its keys are"),
         (dict(env=EMPTY, discovery_kwargs=dict(strategy="none")), "strategy='none' needs sub-goals.*subgoals="),
         (dict(env=EMPTY, discovery_kwargs=dict(strategy="everything")), r"discovery_kwargs\['strategy'\] must be one of"),
@@ -1471,6 +1474,35 @@ def test_the_facts_questions_carry_are_recorded_only_while_questions_can_be_aske
 
 
 # ---------------------------------------------------------------------------- discount per primitive step
+
+
+@pytest.mark.parametrize("every, updates", [(None, [4, 12, 4, 8]), (10, [2, 1, 4])])
+def test_steps_per_update_caps_the_meta_controllers_updates(monkeypatch, every: Optional[int], updates: list) -> None:
+    """N_opt updates after each episode (Algorithm 1); with meta_kwargs steps_per_update K, no more than a rollout's
+    primitive steps over K, what it leaves unused kept for the next rollout up to that rollout's N_opt per episode."""
+    model = make_model(EMPTY, batch_size=8, meta_kwargs=dict(n_opt=4, steps_per_update=every))
+    calls: list = []
+    monkeypatch.setattr(DoubleDQN, "train", lambda self, gradient_steps, batch_size=100: calls.append(gradient_steps))
+    monkeypatch.setattr(model.replay_buffer, "size", lambda: 100)
+    # (episodes, primitive steps) of four rollouts: allowance 2.5 -> 2 done; 0.5 + 1.2 -> 1; 0.7 + 10 capped at 4 -> 4;
+    # 0 + 0.3 -> none
+    for episodes, steps in [(1, 25), (3, 12), (1, 100), (2, 3)]:
+        model._rollout_episodes, model._rollout_steps = episodes, steps
+        model.train(model.gradient_steps, model.batch_size)
+    assert calls == updates
+
+
+def test_steps_per_update_bounds_a_runs_meta_updates() -> None:
+    """Over a run, the meta-controller's updates stay within its primitive steps over K (after its buffer held a
+    batch), where N_opt per episode does more on a room solved in a few steps."""
+    counts = []
+    for every in (None, 16):
+        model = make_model(EMPTY, batch_size=8, learning_starts=0, meta_kwargs=dict(n_opt=4, steps_per_update=every))
+        model.learn(1_500)
+        counts.append(model._n_updates)
+        if every is not None:
+            assert 0 < model._n_updates <= 1_500 / every
+    assert counts[1] < counts[0]
 
 
 def test_with_discount_steps_an_option_is_discounted_by_its_primitive_steps(tmp_path) -> None:

@@ -63,11 +63,14 @@ LEARNER_INPUTS = ("view", "overview", "one_hot")
 #: added to its Q-values exactly (``exact_bonus``), how the task's own goal is paid (``success_bonus``), whether it
 #: chooses only choosable sub-goals (``mask_subgoals``), whether ``predict`` breaks cycles (``break_cycles``) and what
 #: ``gamma`` discounts (``discount``): each sub-goal choice ("choice", the paper's DQN over choices) or each primitive
-#: step ("steps": an option's return is sum_i gamma^i r_i and its bootstrap gamma^k after its k steps, the semi-MDP's)
+#: step ("steps": an option's return is sum_i gamma^i r_i and its bootstrap gamma^k after its k steps, the semi-MDP's);
+#: ``steps_per_update``: at most one update per this many primitive steps of all envs (None: N_opt after every
+#: episode, however short, Algorithm 1; design decisions: the meta-controller's update rate)
 META_DEFAULTS: dict[str, Any] = dict(n_opt=4, target_update_interval=500, tau=1.0, exploration_initial_eps=1.0,
                                      max_grad_norm=10.0, stats_window_size=100, capacity=16, input="auto",
                                      center_bonus="max", exact_bonus=False, success_bonus="predicted",
-                                     mask_subgoals=True, break_cycles=True, discount="choice")
+                                     mask_subgoals=True, break_cycles=True, discount="choice",
+                                     steps_per_update=None)
 #: each ``*_kwargs`` argument grouped over defaults: its defaults and the keys it accepts (None: the defaults' keys)
 GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
     "query_kwargs": (QUERY_DEFAULTS, None),
@@ -128,6 +131,9 @@ def check_grouped(query: dict[str, Any], predictor: dict[str, Any], discovery: d
                          "share_experience=True")
     if meta["n_opt"] < 1:
         raise ValueError(f"meta_kwargs['n_opt'] must be >= 1, got {meta['n_opt']}")
+    every = meta["steps_per_update"]
+    if every is not None and (isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1):
+        raise ValueError(f"meta_kwargs['steps_per_update'] must be an integer >= 1 (or None), got {every!r}")
     if meta["capacity"] < 1:
         raise ValueError(f"meta_kwargs['capacity'] must be >= 1, got {meta['capacity']}")
 

@@ -447,7 +447,9 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         self.last_predictor_stats: dict[str, float] = {}
         self.last_confidences: np.ndarray = np.zeros(0)
         self._last_trace = EpisodeTrace()
-        self._rollout_episodes = 0
+        self._rollout_episodes, self._rollout_steps = 0, 0
+        if not hasattr(self, "_update_allowance"):
+            self._update_allowance = 0.0  # meta-controller updates the steps so far allow (meta_kwargs steps_per_update)
         if self.options is not None:
             self._attach(self.options)
 
@@ -517,10 +519,19 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
 
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
         """N_opt meta-controller updates for each episode that just ended (Algorithm 1 lines 30-34), once the meta
-        buffer holds a batch."""
+        buffer holds a batch. With ``meta_kwargs["steps_per_update"]`` = K, no more than the rollout's primitive steps
+        over K: short episodes (a solved task's, or every life lost on Atari) then do not each cost N_opt updates.
+        What a rollout does not use of its steps' allowance is kept for the next, up to its own N_opt per episode."""
         if self.replay_buffer is None or self.replay_buffer.size() < batch_size:
             return
-        super().train(gradient_steps * max(1, self._rollout_episodes), batch_size)
+        due = gradient_steps * max(1, self._rollout_episodes)
+        every = self.meta_kwargs["steps_per_update"]
+        if every is not None:
+            self._update_allowance = min(self._update_allowance + self._rollout_steps / every, float(due))
+            due = int(self._update_allowance)
+            self._update_allowance -= due
+        if due > 0:
+            super().train(due, batch_size)
 
     # ------------------------------------------------------------------ rollouts
     def collect_rollouts(
@@ -568,7 +579,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
                 if log_interval is not None and self._episode_num % log_interval == 0:
                     self.dump_logs()
         self._score_ended_choices()
-        self._rollout_episodes = num_collected_episodes
+        self._rollout_episodes, self._rollout_steps = num_collected_episodes, num_collected_steps * options.num_envs
         callback.on_rollout_end()
         return RolloutReturn(num_collected_steps * options.num_envs, num_collected_episodes, True)
 
