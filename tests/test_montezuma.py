@@ -7,6 +7,7 @@ import pytest
 
 from sb3_hhp.goals import ImageGoalSpace, make_goal_space
 from sb3_hhp.oracles import Label, MontezumaScriptedOracle, NoisyOracle, Query, make_oracle
+from sb3_hhp.oracles.synthetic import SyntheticOracle
 from sb3_hhp.oracles.montezuma import DOOR_OPENED, KEY_HELD, LOST, NEW_ROOM, NO_KEY
 
 ale_py = pytest.importorskip("ale_py", reason='needs the [atari] extra: pip install "sb3_hhp[atari]"')
@@ -178,6 +179,9 @@ def test_scripted_picks_the_montezuma_oracle_for_an_image_goal_space_bound_to_it
     with pytest.raises(ValueError, match="ALE game 'pong'.*Montezuma.*'synthetic'"):
         make_oracle("scripted", other, pong.observation_space)
     assert make_oracle("synthetic", other, pong.observation_space) is not None
+    # "auto": the scripted oracle where the game has one, the synthetic oracle elsewhere
+    assert isinstance(make_oracle("auto", space, env.observation_space), MontezumaScriptedOracle)
+    assert isinstance(make_oracle("auto", other, pong.observation_space), SyntheticOracle)
 
 
 def test_hhp_training_asks_the_montezuma_oracle_with_the_facts_of_both_sub_goals() -> None:

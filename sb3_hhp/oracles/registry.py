@@ -9,8 +9,16 @@ from sb3_hhp.goals.base import GoalSpace
 from sb3_hhp.goals.image import MONTEZUMA
 from sb3_hhp.oracles.base import Oracle
 
-#: the names :func:`make_oracle` builds an oracle from
-ORACLE_NAMES = ("scripted", "noisy-scripted", "synthetic", "web", "terminal", "none")
+#: the names :func:`make_oracle` builds an oracle from ("auto": "scripted" where the task has a scripted oracle, else
+#: "synthetic")
+ORACLE_NAMES = ("scripted", "noisy-scripted", "synthetic", "auto", "web", "terminal", "none")
+
+
+def has_scripted_oracle(goal_space: GoalSpace) -> bool:
+    """Whether a scripted oracle answers for ``goal_space``: MiniGrid's, Fetch's, and the image goal space's where it
+    is bound to Montezuma's Revenge."""
+    return goal_space.name in ("minigrid", "fetch") or (goal_space.name == "image"
+                                                          and getattr(goal_space, "game", None) == MONTEZUMA)
 
 
 def make_oracle(
@@ -35,6 +43,8 @@ def make_oracle(
         raise ValueError(f"Unknown oracle {name!r}: use one of {', '.join(ORACLE_NAMES)} or pass an Oracle instance")
     if name == "none":
         return None
+    if name == "auto":
+        name = "scripted" if has_scripted_oracle(goal_space) else "synthetic"
     if name in ("scripted", "noisy-scripted"):
         rho = kwargs.pop("rho", 0.1)
         if goal_space.name == "minigrid":
