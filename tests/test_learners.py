@@ -202,6 +202,31 @@ def test_one_grouped_update_equals_sb3s_double_dqn_step_for_every_subgoal(monkey
     assert learners.n_updates.tolist() == [1, int(1 in due), 1]
 
 
+def test_cnn_learners_grouped_update_equals_sb3s_double_dqn_step_for_every_subgoal(monkeypatch: pytest.MonkeyPatch) -> None:
+    """CnnPolicy learners (NatureCNN on frames, one learner after the other, each parameter a leaf of its own): the
+    same step as SB3's policy of each sub-goal, its uint8 frames scaled as SB3 scales them."""
+    frames = spaces.Box(0, 255, (1, 36, 36), np.uint8)
+    learners = StackedDQN(frames, ACTIONS, equal_keys, policy="CnnPolicy", seed=0, subpolicy_kwargs=dict(
+        policy_kwargs=dict(features_extractor_kwargs=dict(features_dim=8)), batch_size=4, learning_starts=4,
+        train_freq=2, gamma=0.9, target_update_interval=5, learning_rate=0.01, max_grad_norm=0.5, n_steps=1))
+    for goal in ("A", "B", "C"):
+        learners.add(goal)
+    goals = np.array([0, 2])
+    batch = fixed_batch(goals, seed=3)
+    rng = np.random.default_rng(3)
+    batch = batch._replace(observations=rng.integers(0, 256, (2, 4, 1, 36, 36), dtype=np.uint8),
+                           next_observations=rng.integers(0, 256, (2, 4, 1, 36, 36), dtype=np.uint8))
+    monkeypatch.setattr(learners.replay, "sample", lambda goals, batch_size: batch)
+    monkeypatch.setattr(learners.replay, "update_priorities", lambda *args: None)
+    expected = {int(goal): sb3_step(learners.policy(int(goal)), batch, row) for row, goal in enumerate(goals)}
+    untouched = learners.params[1].clone()
+    learners.train(goals)
+    for goal, params in expected.items():
+        th.testing.assert_close(learners.params[goal], params, rtol=1e-5, atol=1e-6)
+    th.testing.assert_close(learners.params[1], untouched)
+    assert learners.n_updates.tolist() == [1, 0, 1]
+
+
 @pytest.mark.parametrize("written_out", [True, False], ids=["written-out backward", "autograd"])
 def test_a_target_range_clips_every_td_target_as_her_does(monkeypatch: pytest.MonkeyPatch, written_out: bool) -> None:
     """target_range (low, high): the update is SB3's Double DQN step on targets clipped to [low, high]; the clip
