@@ -5,10 +5,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+from sb3_hhp import HhP
 from sb3_hhp.goals import ImageGoalSpace, make_goal_space
 from sb3_hhp.oracles import Label, MontezumaScriptedOracle, NoisyOracle, Query, make_oracle
-from sb3_hhp.oracles.synthetic import SyntheticOracle
 from sb3_hhp.oracles.montezuma import DOOR_OPENED, KEY_HELD, LOST, NEW_ROOM, NO_KEY
+from sb3_hhp.oracles.synthetic import SyntheticOracle
 
 ale_py = pytest.importorskip("ale_py", reason='needs the [atari] extra: pip install "sb3_hhp[atari]"')
 gym.register_envs(ale_py)
@@ -179,6 +180,10 @@ def test_scripted_picks_the_montezuma_oracle_for_an_image_goal_space_bound_to_it
     with pytest.raises(ValueError, match="ALE game 'pong'.*Montezuma.*'synthetic'"):
         make_oracle("scripted", other, pong.observation_space)
     assert make_oracle("synthetic", other, pong.observation_space) is not None
+    # sub-goals handed in have no facts of a state they were found in: the scripted oracle is refused before training
+    with pytest.raises(ValueError, match=r"MontezumaScriptedOracle answers from the facts.*handed in.*oracle='synthetic'"):
+        HhP("CnnPolicy", env, oracle="noisy-scripted", goal_space=space,
+            discovery_kwargs=dict(strategy="none", subgoals=[env.reset(seed=0)[0]]))
     # "auto": the scripted oracle where the game has one, the synthetic oracle elsewhere
     assert isinstance(make_oracle("auto", space, env.observation_space), MontezumaScriptedOracle)
     assert isinstance(make_oracle("auto", other, pong.observation_space), SyntheticOracle)

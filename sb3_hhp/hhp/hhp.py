@@ -433,6 +433,11 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         self.store.set_query_budget(self.query_budget)  # shown on the labeling page as "asked / budget"
         self.subgoal_table = SubgoalTable(self.store)  # the labeling page's gallery, in the store's file
         self.oracle = self._make_oracle()
+        answering = getattr(self.oracle, "oracle", self.oracle)  # a noisy oracle's own
+        if self.initial_subgoals and getattr(answering, "needs_found_facts", False):
+            raise ValueError(f"{type(answering).__name__} answers from the facts of the state each sub-goal was found in, "
+                             "and sub-goals handed in (discovery_kwargs['subgoals']) have none: let discovery find "
+                             "them, or ask another oracle (oracle='synthetic', 'web' or 'terminal')")
         self.record_images = self.query_kwargs["record_images"]
         if self.record_images is None:  # states shown to people, unless a question's state is drawn from its facts
             self.record_images = (self.oracle_spec in ("web", "terminal")

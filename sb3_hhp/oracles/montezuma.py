@@ -98,6 +98,9 @@ class MontezumaScriptedOracle(Oracle):
         equally good; 4 is one step of walking or climbing at the frame skip of 4
     """
 
+    #: it reads the facts of the states where the sub-goals were found (sub-goals handed in have none)
+    needs_found_facts = True
+
     def __init__(self, name: str = "scripted", equal_tolerance: float = 4.0) -> None:
         if not equal_tolerance >= 0:
             raise ValueError(f"equal_tolerance must be >= 0 RAM units, got {equal_tolerance}")
