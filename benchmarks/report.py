@@ -604,6 +604,54 @@ def hierarchical_env_section(root: Path) -> str:
         "llrrrrrrrr", _hierarchical_env_row)
 
 
+def _code(data: dict) -> str:
+    """The commit a measurement ran (``+`` where files of the package differed from it), from ``code_version``."""
+    code = data.get("code")
+    return "–" if not code else code["commit"][:7] + ("+" if code["changed"] else "")
+
+
+def _speed_row(path: Path, data: dict) -> list[str]:
+    dqn = data.get("dqn_fps")
+    return [f"`{path.name}`", _code(data), data["env"], str(data.get("n_envs", 1)), f"{data['window'][0]:,}-{data['window'][1]:,}",
+            f"`{json.dumps(data.get('hhp_kwargs') or {})}`", f"{data['hhp_fps']:.1f}",
+            f"{dqn:.1f}" if dqn is not None else "–", f"{data['ratio']:.2f}" if dqn is not None else "–",
+            str(data.get("num_subgoals", "–")), f"{data['load_average_start']:.1f}-{data['load_average_end']:.1f}"]
+
+
+def _speed_files(root: Path, key: str) -> list[Path]:
+    """``benchmarks/speed.py``'s JSON files under ``results/speed`` that hold ``key``."""
+    return [path for path in sorted((root / RESULTS / "speed").glob("*.json")) if key in json.loads(path.read_text())]
+
+
+def _subgoals_row(path: Path, data: dict) -> list[str]:
+    low, high = data["rows"][0], data["rows"][-1]
+    return [f"`{path.name}`", _code(data), data["env"], f"{data['window'][0]:,}-{data['window'][1]:,}",
+            f"`{json.dumps(data.get('hhp_kwargs') or {})}`", f"{low['k']} / {high['k']}",
+            f"{low['ms_per_step']:.1f} / {high['ms_per_step']:.1f}", f"{data['cost_ratio']:.2f}",
+            f"{low['replay_mb']:.0f} / {high['replay_mb']:.0f}", f"{data['memory_ratio']:.2f}"]
+
+
+def speed_section(root: Path) -> str:
+    """HhP's steps per second beside SB3's DQN, and the cost of many sub-goals (``benchmarks/speed.py``'s JSON files
+    under ``results/speed``: ``entry --vs-dqn`` and ``subgoals``)."""
+    subgoals = json_section(
+        _speed_files(root, "cost_ratio"), "The cost of many sub-goals",
+        "`python benchmarks/speed.py subgoals --env ENV --start A --stop B --hhp-kwargs JSON --name NAME`: HhP with K "
+        "sub-goals handed in (discovery off; on Atari no questions), each K in a fresh process, timed over steps A-B; "
+        "the cost of a primitive step, the sub-goal learners' replay and the peak resident memory (ratio).",
+        ("file", "code", "env", "steps", "HhP arguments", "sub-goals", "ms a step", "cost ratio", "replay MB", "memory ratio"),
+        "lllrlrrrrr", _subgoals_row)
+    return json_section(
+        _speed_files(root, "hhp_fps"), "Speed beside SB3's DQN",
+        "`python benchmarks/speed.py entry --env ENV --start A --stop B --vs-dqn --hhp-kwargs JSON --name NAME` times HhP "
+        "as the env's YAML entry trains it (with the arguments shown over the entry's) and SB3's DQN on the same envs "
+        "(train_freq 4, batch 32) over primitive steps A-B, in one process, one torch thread; DQN's figure is the mean "
+        "of its window before and after HhP's. The load average is the machine's (2 cores) at the start and the end; "
+        "code: the commit measured.",
+        ("file", "code", "env", "envs", "steps", "HhP arguments", "HhP steps/s", "DQN steps/s", "ratio", "sub-goals", "load"),
+        "lllrrlrrrrr", _speed_row) + ("\n" + subgoals if subgoals else "")
+
+
 def results_page(root: Path = ROOT, plot: bool = False) -> str:
     """The results page's text (and, with ``plot``, each sweep's learning curves written)."""
     folders = sorted(path.parent for path in (root / RESULTS).glob("*/results.csv"))
@@ -619,6 +667,7 @@ def results_page(root: Path = ROOT, plot: bool = False) -> str:
     ]
     sections += [sweep_section(folder, root, files.get(folder.name, []), plot) for folder in folders]
     sections.append(hierarchical_env_section(root))
+    sections.append(speed_section(root))
     sections.append(calibration_section(root))
     return "\n".join(section for section in sections if section).rstrip() + "\n"
 

@@ -27,10 +27,12 @@ pairs of ``--profile-steps`` steps each::
 
     python benchmarks/speed.py ab --env MiniGrid-DoorKey-8x8-v0 --n-envs 8 --start 20000 --profile-steps 6000
 
-``subgoals``: HhP with K sub-goals handed in (``discovery="none"``), K = 2 and 32, each in a fresh process: the
-cost of a primitive step (after a warm-up) and the peak resident memory::
+``subgoals``: HhP with K sub-goals handed in (``discovery="none"``), K = 2 and 32, each in a fresh process, with the
+env's YAML entry (its policy and ``env_wrapper``): the cost of a primitive step (after a warm-up), the peak resident
+memory and the sub-goal learners' replay::
 
     python benchmarks/speed.py subgoals --env MiniGrid-DoorKey-8x8-v0 --out benchmarks/results/speed
+    python benchmarks/speed.py subgoals --env ALE/MontezumaRevenge-v5 --start 500 --stop 1500
 
 ``floor``: what a primitive step cannot cost less than with the entry's learning work: the envs alone (random actions,
 the entry's observation wrapper) and one learning round's arithmetic alone (the sub-goal learners' batched matrix
@@ -50,6 +52,12 @@ counted apart) and HhP with those updates left out (everything else a step costs
 envs: Atari's CnnPolicy on 84x84 frames too), timed over a window; ``--hhp-kwargs`` sets e.g. the device::
 
     python benchmarks/speed.py entry --env ALE/Pong-v5 --start 1000 --stop 2000 --hhp-kwargs '{"device": "cuda"}'
+
+with ``--vs-dqn``, against SB3's DQN on the same envs (the entry's policy, ``env_wrapper`` and number of envs; SB3's
+``train_freq`` 4 and batch 32: one update per 4 primitive steps), timed over the same window once before HhP and once
+after it (HhP is compared with their mean), in one process: the Atari target's comparison::
+
+    python benchmarks/speed.py entry --env ALE/MontezumaRevenge-v5 --start 1000 --stop 2000 --vs-dqn
 
 ``call``: one grouped call of the sub-goal learners' update (``train_rounds``: the two rounds due at a step of the
 envs, each of the entry's ``max_updates`` learners) from one saved state of a run (as ``ab``), repeated, its time split
@@ -96,17 +104,22 @@ from stable_baselines3 import DQN
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
-import sb3_hhp
-from sb3_hhp import HhP
-from sb3_hhp.extras import import_extra
-from sb3_hhp.goals import register_minigrid_tasks, wrap_env
-from sb3_hhp.hhp.arguments import SUBGOAL_LEARNER_DEFAULTS
-from sb3_hhp.hierarchy.learners import StackedDQN, default_subpolicy_kwargs
-from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry
+sys.path.append(str(pathlib.Path(__file__).resolve().parents[1]))  # run as a script: the benchmarks package
+from benchmarks.run import code_version  # noqa: E402
+import sb3_hhp  # noqa: E402
+from sb3_hhp import HhP  # noqa: E402
+from sb3_hhp.extras import import_extra  # noqa: E402
+from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
+from sb3_hhp.hhp.arguments import SUBGOAL_LEARNER_DEFAULTS  # noqa: E402
+from sb3_hhp.hierarchy.learners import StackedDQN, default_subpolicy_kwargs  # noqa: E402
+from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry  # noqa: E402
 
 
 def yaml_entry(env_id: str) -> tuple[str, dict[str, Any]]:
-    """The name and the whole entry of ``env_id`` in ``sb3_hhp/hyperparams/hhp.yml``."""
+    """The name and the whole entry of ``env_id`` in ``sb3_hhp/hyperparams/hhp.yml`` (ALE's envs registered for an
+    ``ALE/`` id: its entry is its domain's)."""
+    if env_id.startswith("ALE/"):
+        gym.register_envs(import_extra("ale_py"))
     table = yaml.safe_load(default_config_path().read_text())
     name = select_entry(table, env_id)
     return name, table[name]
@@ -198,24 +211,41 @@ def flat_dqn(args: argparse.Namespace, kwargs: dict[str, Any]) -> tuple[DQN, dic
     return dqn, dict(net_arch=net_arch, train_freq=sub["train_freq"], batch_size=sub["batch_size"])
 
 
+def entry_wrapper(entry: dict[str, Any]) -> Any:
+    """The YAML entry's ``env_wrapper`` as RL Zoo reads it."""
+    from rl_zoo3.utils import get_wrapper_class
+
+    return get_wrapper_class(entry)
+
+
 def entry_speed(args: argparse.Namespace) -> dict[str, Any]:
     """HhP as the env's YAML entry trains it (its policy, ``env_wrapper`` and ``n_envs`` unless ``--n-envs`` says
     otherwise), timed over steps ``--start`` to ``--stop``, with ``--hhp-kwargs`` over the entry's (e.g. the device)."""
-    from rl_zoo3.utils import get_wrapper_class
-
-    if args.env.startswith("ALE/"):
-        gym.register_envs(import_extra("ale_py"))
     _, entry = yaml_entry(args.env)
     kwargs = hhp_kwargs(entry, args.hhp_kwargs)  # the YAML read once
-    wrapper = get_wrapper_class(entry)  # the entry's env_wrapper, as RL Zoo reads it
+    wrapper = entry_wrapper(entry)
     n_envs = args.n_envs or entry.get("n_envs", 1)
+    policy = entry.get("policy", "MlpPolicy")
+    dqn, compared = None, {}
+    if args.vs_dqn:  # SB3's DQN on the same envs: train_freq 4 and batch 32, one update per 4 primitive steps
+        dqn = DQN(policy, make_vec_env(args.env, n_envs=n_envs, wrapper_class=wrapper, seed=args.seed), batch_size=32,
+                  train_freq=4 if n_envs == 1 else TrainFreq(1, TrainFrequencyUnit.STEP),
+                  gradient_steps=max(1, n_envs // 4), buffer_size=50_000, learning_starts=min(100, args.start),
+                  seed=args.seed, device=kwargs.get("device", "auto"))
+        compared["dqn_fps_before"] = timed_window(dqn, args.start, args.stop)
     envs = make_vec_env(args.env, n_envs=n_envs, wrapper_class=wrapper, seed=args.seed)
     folder = pathlib.Path(tempfile.mkdtemp(prefix="hhp_speed_"))
-    model = HhP(entry.get("policy", "MlpPolicy"), envs, seed=args.seed, **as_trained(kwargs, folder))
+    model = HhP(policy, envs, seed=args.seed, **as_trained(kwargs, folder))
     fps = timed_window(model, args.start, args.stop)
+    if dqn is not None:  # again right after HhP, over as many steps (the machine drifts): HhP against the mean
+        compared["dqn_fps_after"] = timed_steps(dqn, args.stop - args.start)
+        compared["dqn_fps"] = (compared["dqn_fps_before"] + compared["dqn_fps_after"]) / 2
+        compared = {key: round(value, 2) for key, value in compared.items()}
+        compared["ratio"] = round(fps / compared["dqn_fps"], 3)
     return dict(env=args.env, hhp_kwargs=json.loads(args.hhp_kwargs), window=[args.start, args.stop], seed=args.seed,
-                n_envs=n_envs, policy=entry.get("policy"), device=str(model.device), hhp_fps=round(fps, 2),
-                num_subgoals=len(model.subgoals), peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1))
+                n_envs=n_envs, policy=policy, device=str(model.device), hhp_fps=round(fps, 2), **compared,
+                num_subgoals=len(model.subgoals), meta_updates=model._n_updates,
+                peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1))
 
 
 def write_profile(profiler: cProfile.Profile, path: pathlib.Path, title: str) -> None:
@@ -416,11 +446,12 @@ def learner_call(args: argparse.Namespace) -> dict[str, Any]:
                 top_torch_ops_ms={event.key: round(event.self_cpu_time_total / 1000 / calls, 3) for event in top}, **compared)
 
 
-def distinct_states(env_id: str, n: int, seed: int) -> list[np.ndarray]:
-    """``n`` observations from random play, of as many distinct sub-goal keys as the env shows (then repeated)."""
+def distinct_states(env_id: str, n: int, seed: int, wrapper: Any = wrap_env) -> list[np.ndarray]:
+    """``n`` observations from random play (the env wrapped with ``wrapper``), of as many distinct sub-goal keys as
+    the env shows (then repeated)."""
     from sb3_hhp.goals import make_goal_space
 
-    env = wrap_env(gym.make(env_id))
+    env = wrapper(gym.make(env_id))
     space = make_goal_space("auto", env)
     rng = np.random.default_rng(seed)
     by_key: dict[Any, np.ndarray] = {}
@@ -437,11 +468,17 @@ def distinct_states(env_id: str, n: int, seed: int) -> list[np.ndarray]:
 
 def one_subgoal_count(args: argparse.Namespace) -> dict[str, Any]:
     """In this process: HhP with ``args.k`` sub-goals handed in; seconds per primitive step and peak memory."""
-    _, kwargs = entry_kwargs(args.env, args.hhp_kwargs)
-    kwargs.update(oracle="scripted", discovery_kwargs=dict(strategy="none", subgoals=distinct_states(args.env, args.k, args.seed)))
-    model = HhP("MlpPolicy", make_envs(args.env, args.n_envs, args.seed), seed=args.seed, **kwargs)
+    _, entry = yaml_entry(args.env)
+    kwargs, wrapper = hhp_kwargs(entry, args.hhp_kwargs), entry_wrapper(entry)  # the entry's policy and envs
+    subgoals = distinct_states(args.env, args.k, args.seed, wrapper)
+    # Montezuma's scripted oracle reads the facts of the states where sub-goals were found, which sub-goals handed in
+    # lack: on Atari no questions are asked (a cost that does not depend on K)
+    oracle = "none" if args.env.startswith("ALE/") else "scripted"
+    kwargs.update(oracle=oracle, discovery_kwargs=dict(strategy="none", subgoals=subgoals))
+    envs = make_vec_env(args.env, n_envs=args.n_envs, wrapper_class=wrapper, seed=args.seed)
+    model = HhP(entry.get("policy", "MlpPolicy"), envs, seed=args.seed, **kwargs)
     fps = timed_window(model, args.start, args.stop)
-    return dict(k=args.k, fps=round(fps, 1), ms_per_step=round(1000 / fps, 3),
+    return dict(k=args.k, oracle=oracle, fps=round(fps, 1), ms_per_step=round(1000 / fps, 3),
                 peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
                 replay_mb=round(model.subpolicies.replay.nbytes() / 2**20, 1))
 
@@ -457,7 +494,8 @@ def subgoals(args: argparse.Namespace) -> dict[str, Any]:
     low, high = rows[0], rows[-1]
     return dict(env=args.env, window=[args.start, args.stop], seed=args.seed, hhp_kwargs=json.loads(args.hhp_kwargs), rows=rows,
                 cost_ratio=round(high["ms_per_step"] / low["ms_per_step"], 3),
-                memory_ratio=round(high["peak_rss_mb"] / low["peak_rss_mb"], 3))
+                memory_ratio=round(high["peak_rss_mb"] / low["peak_rss_mb"], 3),
+                replay_ratio=round(high["replay_mb"] / max(low["replay_mb"], 1e-9), 3))
 
 
 def median_seconds(call: Any, repeats: int, blocks: int = 5) -> float:
@@ -533,6 +571,7 @@ def main() -> None:
     parser.add_argument("--learners-a", default="{}", help="ab: JSON, sub-goal learner attributes of A")
     parser.add_argument("--learners-b", default='{"grouped_rounds": true}', help="ab: JSON, the same for B")
     parser.add_argument("--repeats", type=int, default=4, help="ab, parts: pairs; call: 25 calls a repeat")
+    parser.add_argument("--vs-dqn", action="store_true", help="entry: SB3's DQN timed over the same window beside HhP")
     parser.add_argument("--call-ab", action="store_true",
                         help="call: also time --learners-a against --learners-b, --repeats alternating blocks of 25 calls")
     parser.add_argument("--out", default="benchmarks/results/speed")
@@ -550,7 +589,7 @@ def main() -> None:
     result = {"ratio": ratio, "late": late, "subgoals": subgoals, "ab": learners_ab, "floor": floor, "parts": parts,
               "entry": entry_speed, "call": learner_call}[args.what](args)
     result.update(threads=args.threads, load_average_start=round(load_before, 2), load_average_end=round(os.getloadavg()[0], 2),
-                  command=" ".join(sys.argv))
+                  command=" ".join(sys.argv), code=code_version(pathlib.Path(sb3_hhp.__file__).resolve().parents[1]))
     (pathlib.Path(args.out) / f"{args.name or args.what}.json").write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))
 

@@ -623,6 +623,28 @@ def test_report_shows_runs_that_have_no_row_yet(tmp_path):
     assert "| ALE-Pong-v5 PPO seed 0 | 100 | 0.00 |" in table and [plot.name for plot in plots] == ["curves_ALE-Pong-v5.png"]
 
 
+def test_report_speed_section_rows_from_the_speed_files(tmp_path):
+    """``speed.py``'s JSON files under ``results/speed`` make one row each: HhP's and DQN's steps/s and their ratio."""
+    speed = tmp_path / report.RESULTS / "speed"
+    speed.mkdir(parents=True)
+    (speed / "atari.json").write_text(json.dumps(dict(
+        env="ALE/MontezumaRevenge-v5", n_envs=1, window=[1000, 2000], hhp_kwargs={"meta_kwargs": {"n_opt": 4}},
+        hhp_fps=30.04, dqn_fps=90.0, ratio=0.334, num_subgoals=1, load_average_start=1.02, load_average_end=2.0,
+        code=dict(commit="abcdef0123", changed=["sb3_hhp/hhp/hhp.py"]))))
+    text = report.speed_section(tmp_path)
+    assert text.startswith("## Speed beside SB3's DQN")
+    assert ('| `atari.json` | abcdef0+ | ALE/MontezumaRevenge-v5 | 1 | 1,000-2,000 | `{"meta_kwargs": {"n_opt": 4}}` | 30.0 | 90.0 | '
+            '0.33 | 1 | 1.0-2.0 |') in text
+    assert "many sub-goals" not in text
+    (speed / "costs.json").write_text(json.dumps(dict(
+        env="ALE/MontezumaRevenge-v5", window=[500, 1500], hhp_kwargs={}, cost_ratio=3.136, memory_ratio=1.899,
+        rows=[dict(k=2, ms_per_step=31.254, replay_mb=674.0), dict(k=32, ms_per_step=98.002, replay_mb=674.0)])))
+    text = report.speed_section(tmp_path)
+    assert "| `atari.json` |" in text and "## The cost of many sub-goals" in text  # each file in its own table
+    assert "| `costs.json` | – | ALE/MontezumaRevenge-v5 | 500-1,500 | `{}` | 2 / 32 | 31.3 / 98.0 | 3.14 | 674 / 674 | 1.90 |" in text
+    assert report.speed_section(tmp_path / "elsewhere") == ""  # no files, no section
+
+
 def test_report_mean_curve_over_seeds():
     a = pd.DataFrame({"steps": [0, 100], "success": [0.0, 1.0]})
     b = pd.DataFrame({"steps": [0, 100], "success": [0.0, 0.5]})
@@ -648,9 +670,12 @@ def test_the_speed_script_times_an_entry_as_it_trains() -> None:
     from benchmarks import speed
 
     result = speed.entry_speed(argparse.Namespace(env="MiniGrid-Empty-5x5-v0", hhp_kwargs='{"device": "cpu"}', seed=0,
-                                                  start=100, stop=300, n_envs=None))
+                                                  start=100, stop=300, n_envs=None, vs_dqn=True))
     assert result["n_envs"] == 1 and result["policy"] == "MlpPolicy" and result["device"] == "cpu"  # the entry's
     assert result["window"] == [100, 300] and result["hhp_fps"] > 0 and result["num_subgoals"] >= 1
+    # SB3's DQN timed over the same window before and after HhP, HhP against their mean
+    assert result["dqn_fps_before"] > 0 and result["dqn_fps_after"] > 0
+    assert result["ratio"] == pytest.approx(result["hhp_fps"] / result["dqn_fps"], rel=0.01)
 
 
 def test_the_speed_script_splits_a_learner_call() -> None:
