@@ -69,6 +69,7 @@ import contextlib
 import dataclasses
 import difflib
 import functools
+import io
 import json
 import multiprocessing
 import os
@@ -139,7 +140,7 @@ COLUMNS = (
 KEY_COLUMNS = ("env", "variant", "seed", "steps")
 #: keys of a baseline entry read by the runner, as RL Zoo reads them (``vec_rnd``: ppo_rnd's curiosity); the rest go
 #: to the algorithm's constructor
-BASELINE_RUNNER_KEYS = ("n_envs", "policy", "vec_rnd", "normalize", "noise_type", "noise_std")
+BASELINE_RUNNER_KEYS = ("n_envs", "policy", "vec_rnd", "normalize", "noise_type", "noise_std", "env_wrapper", "frame_stack")
 #: the replay buffers a baseline entry may name (``replay_buffer_class``), by name: ``module.Class``
 REPLAY_BUFFERS = {
     "ReplayBuffer": "stable_baselines3.common.buffers.ReplayBuffer",
@@ -549,13 +550,21 @@ def _run_hhp(experiment: Experiment, sweep: Sweep, out: Path, log_file: Any) -> 
     }
 
 
-def _baseline_envs(env_id: str, baseline: Baseline, n_envs: int, seed: Optional[int] = None) -> Any:
-    """A VecEnv of ``n_envs`` envs (each in a ``Monitor``) with the observation ``baseline`` reads."""
+def _baseline_envs(env_id: str, baseline: Baseline, n_envs: int, seed: Optional[int] = None,
+                   runner: Optional[dict[str, Any]] = None) -> Any:
+    """A VecEnv of ``n_envs`` envs (each in a ``Monitor``) with the observation ``baseline`` reads: the entry's
+    ``env_wrapper`` (as RL Zoo names it: Atari's ``AtariWrapper``) where it has one, else HhP's observation on
+    MiniGrid; its ``frame_stack`` frames stacked (``VecFrameStack``, as RL Zoo stacks Atari's)."""
+    from rl_zoo3.utils import get_wrapper_class
     from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecFrameStack
 
     from sb3_hhp.goals import wrap_env
 
-    return make_vec_env(env_id, n_envs=n_envs, seed=seed, wrapper_class=wrap_env if baseline.hhp_observation else None)
+    runner = runner or {}
+    wrapper = get_wrapper_class(runner) if runner.get("env_wrapper") else (wrap_env if baseline.hhp_observation else None)
+    envs = make_vec_env(env_id, n_envs=n_envs, seed=seed, wrapper_class=wrapper)
+    return VecFrameStack(envs, int(runner["frame_stack"])) if runner.get("frame_stack") else envs
 
 
 def _normalize_kwargs(normalize: Any, gamma: Optional[float]) -> Optional[dict[str, Any]]:
@@ -618,6 +627,8 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
     th.set_num_threads(1)
     register_minigrid_tasks()
     register_fetch_envs()
+    with contextlib.redirect_stderr(io.StringIO()):
+        import rl_zoo3.import_envs  # noqa: F401  registers ALE's envs, as sb3_hhp.train does
     baseline = BASELINES[experiment.variant]
     settings = baseline_settings(sweep.baselines_conf, experiment.variant, experiment.env)
     runner = {key: settings.pop(key) for key in BASELINE_RUNNER_KEYS if key in settings}
@@ -627,7 +638,7 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
     # a run stopped before its end goes on from its last checkpoint, its envs seeded apart from its first part's
     checkpoint = read_checkpoint(str(log_folder)) if latest_checkpoint(log_folder) is not None else None
     seed = experiment.seed if checkpoint is None else resume_seed(experiment.seed, checkpoint["timesteps"])
-    env = _baseline_envs(experiment.env, baseline, n_envs, seed)
+    env = _baseline_envs(experiment.env, baseline, n_envs, seed, runner)
     if baseline.her:
         check_goal_observation(experiment.variant, experiment.env, sweep.name, env.observation_space)
     normalize = _normalize_kwargs(runner.get("normalize"), settings.get("gamma"))
@@ -660,7 +671,7 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
     earlier_seconds = checkpoint["train_seconds"] if checkpoint is not None else 0.0
 
     def make_envs(n: int, seed: Optional[int] = None) -> Any:  # evaluation envs, normalized as training leaves them
-        return frozen_normalization(_baseline_envs(experiment.env, baseline, n, seed), model.get_vec_normalize_env())
+        return frozen_normalization(_baseline_envs(experiment.env, baseline, n, seed, runner), model.get_vec_normalize_env())
 
     callbacks = []
     eval_freq = sweep.eval_freq[experiment.env]

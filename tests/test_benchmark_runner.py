@@ -522,6 +522,47 @@ def test_a_stopped_baseline_run_goes_on_from_its_last_checkpoint(tmp_path, varia
         assert summary["hyperparams"]["replay_buffer_class"] == "HerReplayBuffer"
 
 
+def test_an_atari_baseline_reads_the_frames_of_its_wrapper_stacked(tmp_path):
+    """PPO + RND on an ALE game: the entry's env_wrapper (AtariWrapper) and frame_stack build its envs, as RL Zoo's
+    Atari entries do; the shipped atari entry is RL Zoo's PPO with RND."""
+    pytest.importorskip("ale_py", reason='needs the [atari] extra: pip install "sb3_hhp[atari]"')
+    from benchmarks.run import baseline_settings
+
+    shipped = baseline_settings(str(EXPERIMENTS.parents[1] / "sb3_hhp" / "hyperparams" / "baselines.yml"), "ppo_rnd",
+                                "ALE/MontezumaRevenge-v5")
+    assert (shipped["env_wrapper"], shipped["frame_stack"], shipped["policy"]) == (
+        "stable_baselines3.common.atari_wrappers.AtariWrapper", 4, "CnnPolicy")
+    write(tmp_path, """
+        ppo_rnd:
+          atari:
+            env_wrapper: stable_baselines3.common.atari_wrappers.AtariWrapper
+            frame_stack: 4
+            n_envs: 2
+            policy: CnnPolicy
+            n_steps: 32
+            batch_size: 32
+            n_epochs: 1
+            policy_kwargs: {features_extractor_kwargs: {features_dim: 16}}
+            vec_rnd: {intrinsic_coef: 0.5, update_every: 16, rnd_kwargs: {hidden_dim: 16, embedding_dim: 8}}
+    """, "baselines.yml")
+    sweep = load_sweep(write(tmp_path, f"""
+        name: tiny
+        envs: [ALE/MontezumaRevenge-v5]
+        variants: [ppo_rnd]
+        seeds: [0]
+        steps: 128
+        eval_freq: 0
+        eval_episodes: 0
+        baselines_conf: {tmp_path / "baselines.yml"}
+    """))
+    row = run_experiment(Experiment("ALE/MontezumaRevenge-v5", "ppo_rnd", 0, 128), sweep, tmp_path / "out")
+    assert row["timesteps"] == 128
+    from stable_baselines3 import PPO
+
+    model = PPO.load(tmp_path / "out" / "logs" / Experiment("ALE/MontezumaRevenge-v5", "ppo_rnd", 0, 128).name / "model.zip")
+    assert model.observation_space.shape == (4, 84, 84)  # 4 stacked 84x84 frames, channels first as SB3 reads them
+
+
 def test_a_run_records_the_code_it_ran(tmp_path):
     """code_version: the checkout's commit and the tracked package files that differ from it (not untracked files, not
     files outside the package's folders, not the runs' results); None outside a git checkout."""
