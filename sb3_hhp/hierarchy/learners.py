@@ -229,7 +229,6 @@ class StackedDQN:
         self._rng = np.random.default_rng(seed)
         self.last_loss = float("nan")
 
-
     # ------------------------------------------------------------------ the set
     def __len__(self) -> int:
         return len(self.recent)
@@ -324,8 +323,8 @@ class StackedDQN:
 
     def _each(self, pieces: Sequence[dict[str, th.Tensor]], obs: th.Tensor) -> th.Tensor:
         """Q-values ``(T, B, A)`` of a network that is not a plain MLP (a CNN), one learner after the other with its
-        named parameters ``pieces[i]``: a convolution of one learner's weights runs at an SB3 module's speed, where
-        ``vmap`` over the stacked weights ran 2.6x slower forward and backward (design decisions: CNN learners)."""
+        named parameters ``pieces[i]``: a convolution of one learner's weights runs near an SB3 module's speed, where
+        ``vmap`` over the stacked weights took twice as long forward and backward (design decisions: CNN learners)."""
         return th.stack([functional_call(self._template, named, (x,)) for named, x in zip(pieces, obs)])
 
     def _leaves(self, flat: th.Tensor) -> list[dict[str, th.Tensor]]:
