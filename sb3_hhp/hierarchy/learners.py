@@ -315,11 +315,17 @@ class StackedDQN:
             x = x / 255.0
         return x.reshape(*obs.shape[:2], -1)
 
-    def _vq(self, flat: th.Tensor, obs: th.Tensor) -> th.Tensor:
-        """Q-values ``(T, B, A)`` of the learners whose flat parameters are ``flat`` ``(T, P)`` at ``obs`` ``(T, B, ...)``."""
+    def _vq(self, stacked: th.Tensor, goals: np.ndarray, obs: th.Tensor) -> th.Tensor:
+        """Q-values ``(T, B, A)`` of the learners ``goals``, their parameters the rows of ``stacked`` (:attr:`params` or
+        :attr:`target`), at ``obs`` ``(T, B, ...)``: a plain MLP's rows gathered for batched products, another
+        network's rows read in place, one learner after the other."""
         if self._layers is None:
-            return self._each(list(map(self._unflatten, flat)), obs)
-        return self._mlp_forward(flat, self._mlp_input(obs))[-1]
+            return self._each(self._named(stacked, goals), obs)
+        return self._mlp_forward(self._take(stacked, self._rows(goals)), self._mlp_input(obs))[-1]
+
+    def _named(self, stacked: th.Tensor, goals: np.ndarray) -> list[dict[str, th.Tensor]]:
+        """Each learner of ``goals``'s named parameters: views of its row of ``stacked`` (nothing gathered)."""
+        return [self._unflatten(stacked[int(goal)]) for goal in goals]
 
     def _each(self, pieces: Sequence[dict[str, th.Tensor]], obs: th.Tensor) -> th.Tensor:
         """Q-values ``(T, B, A)`` of a network that is not a plain MLP (a CNN), one learner after the other with its
@@ -327,11 +333,11 @@ class StackedDQN:
         ``vmap`` over the stacked weights took twice as long forward and backward (design decisions: CNN learners)."""
         return th.stack([functional_call(self._template, named, (x,)) for named, x in zip(pieces, obs)])
 
-    def _leaves(self, flat: th.Tensor) -> list[dict[str, th.Tensor]]:
-        """Each row of ``flat`` ``(T, P)`` as named parameters, each a leaf of its own that autograd differentiates
-        (a gradient through views of one row would add every parameter's into a zeroed row of ``P``)."""
-        return [{name: piece.detach().clone().requires_grad_() for name, piece in self._unflatten(row).items()}
-                for row in flat]
+    def _leaves(self, goals: np.ndarray) -> list[dict[str, th.Tensor]]:
+        """Each learner of ``goals``'s named parameters copied from :attr:`params`, each a leaf of its own that autograd
+        differentiates (a gradient through views of one row would add every parameter's into a zeroed row of ``P``)."""
+        return [{name: piece.detach().clone().requires_grad_() for name, piece in named.items()}
+                for named in self._named(self.params, goals)]
 
     def _row_gradients(self, loss: th.Tensor, leaves: list[dict[str, th.Tensor]]) -> th.Tensor:
         """The gradient ``(T, P)`` of ``loss`` with respect to :meth:`_leaves`, in the rows' layout."""
@@ -509,7 +515,7 @@ class StackedDQN:
         distinct, inverse = np.unique(goals, return_inverse=True)
         with th.no_grad():
             obs_t = self._tensor(np.asarray(obs))
-            q = self._vq(self._take(self.params, self._rows(distinct)), obs_t.unsqueeze(0).expand(len(distinct), *obs_t.shape))  # (U, n, A)
+            q = self._vq(self.params, distinct, obs_t.unsqueeze(0).expand(len(distinct), *obs_t.shape))  # (U, n, A)
             return q[th.as_tensor(inverse.reshape(-1), device=self.device), th.arange(len(goals), device=self.device)]
 
     def act(self, goals: np.ndarray, obs: np.ndarray, deterministic: bool = False,
@@ -622,7 +628,7 @@ class StackedDQN:
         if self._relu_mlp and batch.encoded_observations is not None:
             first, rest = self._first_rows(self.params, goals[:learners]), slice(self._starts[1], None)
             params = self._take(self.params[:, rest], index)
-        else:
+        elif self._relu_mlp:  # (another network's learners copy their rows as leaves: _leaves)
             params = self._take(self.params, index)
 
         def per_learner(a: np.ndarray) -> np.ndarray:  # (reps * learners, m, ...) in plan order -> (learners, reps * m, ...)
@@ -652,7 +658,7 @@ class StackedDQN:
             q_s = per_round(outputs[-1][:, : reps * n])
             q, next_q_online = q_s.gather(-1, actions)[..., 0], per_round(outputs[-1][:, reps * n :])
         else:
-            leaves = self._leaves(params)
+            leaves = self._leaves(goals[:learners])
             q = self._each(leaves, self._tensor(batch.observations)).gather(-1, actions)[..., 0]
             next_q_online = None
         with th.no_grad():
@@ -665,7 +671,7 @@ class StackedDQN:
                 next_q_target = per_round(self._mlp_forward(self._take(target, index), closing, first)[-1])
             else:
                 next_obs_t = self._tensor(next_obs)
-                next_q_target = self._vq(self._take(self.target, index), next_obs_t)
+                next_q_target = self._vq(self.target, goals[:learners], next_obs_t)
             if not self.double_q:
                 next_q_online = next_q_target
             elif next_q_online is None:
