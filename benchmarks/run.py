@@ -69,7 +69,6 @@ import contextlib
 import dataclasses
 import difflib
 import functools
-import io
 import json
 import multiprocessing
 import os
@@ -620,15 +619,11 @@ def _run_baseline(experiment: Experiment, sweep: Sweep, out: Path) -> dict[str, 
     from stable_baselines3.common.vec_env import VecNormalize
 
     from sb3_hhp.curiosity import VecRNDReward
-    from sb3_hhp.extras import register_fetch_envs
-    from sb3_hhp.goals import register_minigrid_tasks
-    from sb3_hhp.train import checkpoint_callback_class, domain_of, eval_seeds, evaluate, read_checkpoint, resume_seed
+    from sb3_hhp.train import (check_env_id, checkpoint_callback_class, domain_of, eval_seeds, evaluate, read_checkpoint,
+                               resume_seed)
 
     th.set_num_threads(1)
-    register_minigrid_tasks()
-    register_fetch_envs()
-    with contextlib.redirect_stderr(io.StringIO()):
-        import rl_zoo3.import_envs  # noqa: F401  registers ALE's envs, as sb3_hhp.train does
+    check_env_id(experiment.env)  # MiniGrid's, Fetch's and ALE's envs registered, as sb3_hhp.train registers them
     baseline = BASELINES[experiment.variant]
     settings = baseline_settings(sweep.baselines_conf, experiment.variant, experiment.env)
     runner = {key: settings.pop(key) for key in BASELINE_RUNNER_KEYS if key in settings}

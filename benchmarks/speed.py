@@ -100,6 +100,7 @@ import minigrid  # noqa: F401  (registers the MiniGrid envs)
 import numpy as np
 import torch as th
 import yaml
+from rl_zoo3.utils import get_wrapper_class
 from stable_baselines3 import DQN
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
@@ -168,9 +169,10 @@ def timed_window(model: Any, start: int, stop: int) -> float:
     return timed_steps(model, stop - model.num_timesteps)
 
 
-def make_envs(env_id: str, n_envs: int, seed: int) -> Any:
-    """``n_envs`` envs as RL Zoo builds them for the YAML entry (``env_wrapper``: the goal space's observation)."""
-    return make_vec_env(env_id, n_envs=n_envs, wrapper_class=wrap_env, seed=seed)
+def make_envs(env_id: str, n_envs: int, seed: int, wrapper: Any = wrap_env) -> Any:
+    """``n_envs`` envs as RL Zoo builds them for the YAML entry (``wrapper``: its ``env_wrapper``, by default the goal
+    space's observation)."""
+    return make_vec_env(env_id, n_envs=n_envs, wrapper_class=wrapper, seed=seed)
 
 
 def ratio(args: argparse.Namespace) -> dict[str, Any]:
@@ -211,31 +213,23 @@ def flat_dqn(args: argparse.Namespace, kwargs: dict[str, Any]) -> tuple[DQN, dic
     return dqn, dict(net_arch=net_arch, train_freq=sub["train_freq"], batch_size=sub["batch_size"])
 
 
-def entry_wrapper(entry: dict[str, Any]) -> Any:
-    """The YAML entry's ``env_wrapper`` as RL Zoo reads it."""
-    from rl_zoo3.utils import get_wrapper_class
-
-    return get_wrapper_class(entry)
-
-
 def entry_speed(args: argparse.Namespace) -> dict[str, Any]:
     """HhP as the env's YAML entry trains it (its policy, ``env_wrapper`` and ``n_envs`` unless ``--n-envs`` says
     otherwise), timed over steps ``--start`` to ``--stop``, with ``--hhp-kwargs`` over the entry's (e.g. the device)."""
     _, entry = yaml_entry(args.env)
     kwargs = hhp_kwargs(entry, args.hhp_kwargs)  # the YAML read once
-    wrapper = entry_wrapper(entry)
+    wrapper = get_wrapper_class(entry)  # the entry's env_wrapper, as RL Zoo reads it
     n_envs = args.n_envs or entry.get("n_envs", 1)
     policy = entry.get("policy", "MlpPolicy")
     dqn, compared = None, {}
     if args.vs_dqn:  # SB3's DQN on the same envs: train_freq 4 and batch 32, one update per 4 primitive steps
-        dqn = DQN(policy, make_vec_env(args.env, n_envs=n_envs, wrapper_class=wrapper, seed=args.seed), batch_size=32,
+        dqn = DQN(policy, make_envs(args.env, n_envs, args.seed, wrapper), batch_size=32,
                   train_freq=4 if n_envs == 1 else TrainFreq(1, TrainFrequencyUnit.STEP),
                   gradient_steps=max(1, n_envs // 4), buffer_size=50_000, learning_starts=min(100, args.start),
                   seed=args.seed, device=kwargs.get("device", "auto"))
         compared["dqn_fps_before"] = timed_window(dqn, args.start, args.stop)
-    envs = make_vec_env(args.env, n_envs=n_envs, wrapper_class=wrapper, seed=args.seed)
     folder = pathlib.Path(tempfile.mkdtemp(prefix="hhp_speed_"))
-    model = HhP(policy, envs, seed=args.seed, **as_trained(kwargs, folder))
+    model = HhP(policy, make_envs(args.env, n_envs, args.seed, wrapper), seed=args.seed, **as_trained(kwargs, folder))
     fps = timed_window(model, args.start, args.stop)
     if dqn is not None:  # again right after HhP, over as many steps (the machine drifts): HhP against the mean
         compared["dqn_fps_after"] = timed_steps(dqn, args.stop - args.start)
@@ -283,7 +277,7 @@ def late(args: argparse.Namespace) -> dict[str, Any]:
                   f"{args.n_envs} envs, {len(hhp.subgoals)} sub-goals")
     dqn, learning = flat_dqn(args, kwargs)
     dqn_fps = timed_window(dqn, args.start, args.start + args.profile_steps)
-    return dict(env=args.env, model=args.model, replay=args.replay, code=str(pathlib.Path(sb3_hhp.__file__).parent),
+    return dict(env=args.env, model=args.model, replay=args.replay,
                 from_step=start_steps, steps=args.profile_steps, n_envs=args.n_envs,
                 hhp_fps=round(hhp_fps, 1), dqn_fps=round(dqn_fps, 1), ratio=round(hhp_fps / dqn_fps, 3),
                 num_subgoals=len(hhp.subgoals), dqn_learning=learning, shares=shares)
@@ -439,7 +433,7 @@ def learner_call(args: argparse.Namespace) -> dict[str, Any]:
     products_ms = sum(event.self_cpu_time_total for event in events if event.key in ("aten::baddbmm", "aten::bmm")) / 1000 / calls
     top = sorted(events, key=lambda event: -event.self_cpu_time_total)[:12]
     return dict(env=args.env, seed=args.seed, n_envs=args.n_envs, model=args.model, replay=args.replay,
-                code=str(pathlib.Path(sb3_hhp.__file__).parent), snapshot_steps=hhp.num_timesteps,
+                snapshot_steps=hhp.num_timesteps,
                 snapshot_subgoals=len(hhp.subgoals), learners_per_round=len(goals), rounds=len(plan),
                 call_ms=round(1000 * seconds, 3), profiled_call_ms=round(profiled_ms, 3), products_ms=round(products_ms, 3),
                 other_torch_ms=round(torch_ms - products_ms, 3), outside_torch_ms=round(profiled_ms - torch_ms, 3),
@@ -469,14 +463,13 @@ def distinct_states(env_id: str, n: int, seed: int, wrapper: Any = wrap_env) -> 
 def one_subgoal_count(args: argparse.Namespace) -> dict[str, Any]:
     """In this process: HhP with ``args.k`` sub-goals handed in; seconds per primitive step and peak memory."""
     _, entry = yaml_entry(args.env)
-    kwargs, wrapper = hhp_kwargs(entry, args.hhp_kwargs), entry_wrapper(entry)  # the entry's policy and envs
+    kwargs, wrapper = hhp_kwargs(entry, args.hhp_kwargs), get_wrapper_class(entry)  # the entry's policy and envs
     subgoals = distinct_states(args.env, args.k, args.seed, wrapper)
     # Montezuma's scripted oracle reads the facts of the states where sub-goals were found, which sub-goals handed in
     # lack: on Atari no questions are asked (a cost that does not depend on K)
     oracle = "none" if args.env.startswith("ALE/") else "scripted"
     kwargs.update(oracle=oracle, discovery_kwargs=dict(strategy="none", subgoals=subgoals))
-    envs = make_vec_env(args.env, n_envs=args.n_envs, wrapper_class=wrapper, seed=args.seed)
-    model = HhP(entry.get("policy", "MlpPolicy"), envs, seed=args.seed, **kwargs)
+    model = HhP(entry.get("policy", "MlpPolicy"), make_envs(args.env, args.n_envs, args.seed, wrapper), seed=args.seed, **kwargs)
     fps = timed_window(model, args.start, args.stop)
     return dict(k=args.k, oracle=oracle, fps=round(fps, 1), ms_per_step=round(1000 / fps, 3),
                 peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
