@@ -139,7 +139,8 @@ COLUMNS = (
 KEY_COLUMNS = ("env", "variant", "seed", "steps")
 #: keys of a baseline entry read by the runner, as RL Zoo reads them (``vec_rnd``: ppo_rnd's curiosity); the rest go
 #: to the algorithm's constructor
-BASELINE_RUNNER_KEYS = ("n_envs", "policy", "vec_rnd", "normalize", "noise_type", "noise_std", "env_wrapper", "frame_stack")
+BASELINE_RUNNER_KEYS = ("n_envs", "policy", "vec_rnd", "normalize", "noise_type", "noise_std", "env_wrapper", "frame_stack",
+                        "env_kwargs")
 #: the replay buffers a baseline entry may name (``replay_buffer_class``), by name: ``module.Class``
 REPLAY_BUFFERS = {
     "ReplayBuffer": "stable_baselines3.common.buffers.ReplayBuffer",
@@ -553,7 +554,8 @@ def _baseline_envs(env_id: str, baseline: Baseline, n_envs: int, seed: Optional[
                    runner: Optional[dict[str, Any]] = None) -> Any:
     """A VecEnv of ``n_envs`` envs (each in a ``Monitor``) with the observation ``baseline`` reads: the entry's
     ``env_wrapper`` (as RL Zoo names it: Atari's ``AtariWrapper``) where it has one, else HhP's observation on
-    MiniGrid; its ``frame_stack`` frames stacked (``VecFrameStack``, as RL Zoo stacks Atari's)."""
+    MiniGrid; its ``frame_stack`` frames stacked (``VecFrameStack``, as RL Zoo stacks Atari's); its ``env_kwargs``
+    passed to ``gym.make`` (ALE's ``frameskip: 1`` under ``AtariWrapper``)."""
     from rl_zoo3.utils import get_wrapper_class
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecFrameStack
@@ -562,7 +564,7 @@ def _baseline_envs(env_id: str, baseline: Baseline, n_envs: int, seed: Optional[
 
     runner = runner or {}
     wrapper = get_wrapper_class(runner) if runner.get("env_wrapper") else (wrap_env if baseline.hhp_observation else None)
-    envs = make_vec_env(env_id, n_envs=n_envs, seed=seed, wrapper_class=wrapper)
+    envs = make_vec_env(env_id, n_envs=n_envs, seed=seed, wrapper_class=wrapper, env_kwargs=runner.get("env_kwargs"))
     return VecFrameStack(envs, int(runner["frame_stack"])) if runner.get("frame_stack") else envs
 
 

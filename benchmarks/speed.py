@@ -171,8 +171,9 @@ def timed_window(model: Any, start: int, stop: int) -> float:
 
 def make_envs(env_id: str, n_envs: int, seed: int, wrapper: Any = wrap_env) -> Any:
     """``n_envs`` envs as RL Zoo builds them for the YAML entry (``wrapper``: its ``env_wrapper``, by default the goal
-    space's observation)."""
-    return make_vec_env(env_id, n_envs=n_envs, wrapper_class=wrapper, seed=seed)
+    space's observation; its ``env_kwargs``, ALE's ``frameskip: 1``, passed to ``gym.make``)."""
+    env_kwargs = yaml_entry(env_id)[1].get("env_kwargs")
+    return make_vec_env(env_id, n_envs=n_envs, wrapper_class=wrapper, seed=seed, env_kwargs=env_kwargs)
 
 
 def ratio(args: argparse.Namespace) -> dict[str, Any]:

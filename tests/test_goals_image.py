@@ -257,3 +257,59 @@ def test_landmarks_on_montezuma_frames_under_atari_wrapper() -> None:
         obs, *_ = env.step(5)
     assert env.unwrapped.ale.getRAM()[43] == 192
     assert space.key(obs) == ("landmarks", (0,)) and space.changed(obs)[0] > 0.5
+
+
+def test_montezuma_landmarks_are_attained_where_the_agent_stands_and_where_the_key_was_taken() -> None:
+    """The named goal space ``montezuma_landmarks``: its reference the first frame read (the reset's), no landmark at
+    the start; the agent placed (RAM x, y) at each place of the way attains that place's box alone; the key's box
+    once the key has left the first room (its objects' bit 0x01)."""
+    ale_py = pytest.importorskip("ale_py", reason='needs the [atari] extra: pip install "sb3_hhp[atari]"')
+    from stable_baselines3.common.atari_wrappers import AtariWrapper
+
+    from sb3_hhp.goals.image import MONTEZUMA_LANDMARKS
+
+    gym.register_envs(ale_py)
+
+    def placed(ram: dict) -> tuple:
+        env = AtariWrapper(gym.make("ALE/MontezumaRevenge-v5", frameskip=1, repeat_action_probability=0.0), noop_max=0,
+                           terminal_on_life_loss=False)
+        space = make_goal_space("montezuma_landmarks", env)
+        assert space.reference is None  # "first": the first frame read
+        start, _ = env.reset(seed=0)
+        assert space.key(start) == ("landmarks", ()) and np.array_equal(space.reference, start[..., 0])
+        for address, value in ram.items():
+            env.unwrapped.ale.setRAM(address, value)
+        for _ in range(2):
+            obs, *_ = env.step(0)
+        return space, space.key(obs)
+
+    names = list(MONTEZUMA_LANDMARKS)
+    places = {"middle ladder's foot": (77, 192), "rope": (109, 205), "right ladder's top": (133, 192),
+              "right ladder's foot": (133, 148), "left ladder's foot": (21, 148), "left ladder's top": (21, 192)}
+    for name, (x, y) in places.items():
+        space, key = placed({42: x, 43: y})
+        assert key == ("landmarks", (names.index(name),)), name
+        assert space.describe(key) == name
+    space, key = placed({67: 30})  # the key gone from the first room
+    assert space.describe(key) == "key"
+
+
+def test_reference_first_and_its_bad_input() -> None:
+    """``reference="first"``: the boxes are checked against the env's frames when bound, the first frame read becomes
+    the reference, later frames of another shape are refused; another string is refused."""
+    room = gym.make("MiniGrid-Empty-8x8-v0", render_mode="rgb_array")
+    with pytest.raises(ValueError, match="reference must be a frame of the env or 'first'"):
+        ImageGoalSpace(landmarks=[(0, 0, 4, 4)], reference="last")
+    frames = np.zeros((2, 20, 30), dtype=np.uint8)
+    frames[1, 2:6, 3:7] = 255
+    space = ImageGoalSpace(landmarks={"corner": (2, 3, 6, 7)}, reference="first")
+    outside = ImageGoalSpace(landmarks=[(0, 0, 21, 5)], reference="first")
+    env = gym.wrappers.TransformObservation(room, lambda obs: frames[0], gym.spaces.Box(0, 255, (20, 30), np.uint8))
+    with pytest.raises(ValueError, match=r"landmark 0 \(0, 0, 21, 5\) lies outside the 20x30 frame"):
+        outside.bind(env)
+    space.bind(env)
+    assert space.reference is None
+    assert space.key(frames[0]) == ("landmarks", ()) and space.key(frames[1]) == ("landmarks", (0,))
+    assert space.describe(space.key(frames[1])) == "corner"
+    with pytest.raises(ValueError, match=r"reference frame has shape \(20, 30\) but this observation has frames of shape"):
+        space.key(np.zeros((20, 31), dtype=np.uint8))

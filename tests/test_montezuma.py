@@ -162,7 +162,13 @@ def test_scripted_picks_the_montezuma_oracle_for_an_image_goal_space_bound_to_it
 
     with pytest.raises(ValueError, match="raw 210x160 screen: wrap it with .*AtariWrapper"):
         ImageGoalSpace().bind(montezuma())  # an Atari env without its frame wrapper
-    env = AtariWrapper(montezuma())
+    with pytest.raises(ValueError, match=r"skips 4 frames a step itself and its frame wrapper 4 more, 16 .*frameskip=1"):
+        ImageGoalSpace().bind(AtariWrapper(montezuma()))  # ALE's v5 frame skip under AtariWrapper's
+    env = AtariWrapper(gym.make("ALE/MontezumaRevenge-v5", frameskip=1, repeat_action_probability=0.0))
+    env.reset(seed=0)
+    before = env.unwrapped.ale.getEpisodeFrameNumber()
+    env.step(0)
+    assert env.unwrapped.ale.getEpisodeFrameNumber() - before == 4  # AtariWrapper's frame skip alone
     space = ImageGoalSpace()
     space.bind(env)
     assert space.game == "montezuma_revenge"
@@ -173,7 +179,7 @@ def test_scripted_picks_the_montezuma_oracle_for_an_image_goal_space_bound_to_it
     # another oracle's setting (the synthetic oracle's head) is refused, naming what this one takes
     with pytest.raises(ValueError, match=r"'scripted' oracle \(MontezumaScriptedOracle\) takes no 'head'.*equal_tolerance"):
         make_oracle("scripted", space, env.observation_space, head="linear")
-    pong = AtariWrapper(gym.make("ALE/Pong-v5"))
+    pong = AtariWrapper(gym.make("ALE/Pong-v5", frameskip=1))
     other = ImageGoalSpace()
     other.bind(pong)
     assert other.game == "pong" and other.snapshot(pong) == {} and other.facts(other.snapshot(pong)) == {}
@@ -198,7 +204,7 @@ def test_hhp_training_asks_the_montezuma_oracle_with_the_facts_of_both_sub_goals
     from sb3_hhp import HhP
 
     th.set_num_threads(1)
-    env = AtariWrapper(gym.make("ALE/MontezumaRevenge-v5", repeat_action_probability=0.0))
+    env = AtariWrapper(gym.make("ALE/MontezumaRevenge-v5", frameskip=1, repeat_action_probability=0.0))
     model = HhP(
         "CnnPolicy", env, oracle="scripted", query_budget=4, seed=0, learning_starts=50, batch_size=16,
         buffer_size=1_000, query_kwargs=dict(mode="fixed", threshold=0.0), predictor_kwargs=dict(n_masks=4),

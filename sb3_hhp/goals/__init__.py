@@ -6,7 +6,7 @@ import gymnasium as gym
 
 from sb3_hhp.goals.base import SUCCESS_KEY, GoalSpace
 from sb3_hhp.goals.fetch import FetchFlatObs, FetchGoalSpace, find_fetch
-from sb3_hhp.goals.image import ImageGoalSpace
+from sb3_hhp.goals.image import MONTEZUMA_LANDMARKS, ImageGoalSpace
 from sb3_hhp.goals.minigrid import MiniGridEgocentricObs, MiniGridGoalSpace, find_minigrid, register_minigrid_tasks
 
 #: in the order "auto" tries them
@@ -20,6 +20,8 @@ NAMED_GOAL_SPACES = {
     "minigrid_open_doors_blockers": lambda: MiniGridGoalSpace(keep_doors_open=True, mark_blockers=True),
     "minigrid_open_doors_blockers_counted": lambda: MiniGridGoalSpace(keep_doors_open=True, mark_blockers=True,
                                                                       count_blockers=True),
+    # Montezuma's Revenge: the paper's detector boxes of its first room, compared with the run's first frame
+    "montezuma_landmarks": lambda: ImageGoalSpace(landmarks=MONTEZUMA_LANDMARKS, reference="first"),
 }
 
 

@@ -15,6 +15,8 @@ of landmarks it attains, and a sub-goal, a set of landmarks, is reached where al
 reference is one frame for the whole run (hg-DAgger's detector compares with the game's first screen), not the frame
 where the option began: ``done(s, g)`` must be a function of the state alone, since the sub-goal learners' shared
 replay decides it from each transition's key for every sub-goal when a batch is drawn.
+``reference="first"`` takes the first frame the goal space reads (the first observation of the run) as the
+reference. :data:`MONTEZUMA_LANDMARKS` are boxes of Montezuma's first room (``goal_space: montezuma_landmarks``).
 
 Observations: ``(H, W)``, ``(H, W, C)`` or ``(C, H, W)`` uint8 images (SB3's image-space test). Three
 channels are read as RGB; any other channel count as a stack of grayscale frames, oldest first (SB3's
@@ -47,6 +49,20 @@ MONTEZUMA = "montezuma_revenge"
 MONTEZUMA_RAM = {"room": 3, "x": 42, "y": 43, "inventory": 65, "room_objects": 66, "first_room_objects": 67,
                  "lives": 58, "death_timer": 55}
 _MONTEZUMA_ADDRESSES = np.array(list(MONTEZUMA_RAM.values()), dtype=np.int64)
+#: landmark boxes ``(row0, col0, row1, col1)`` of Montezuma's first room in SB3's ``AtariWrapper`` frames (84x84), each
+#: where the agent's sprite stands at a place on the way to the key and back (RAM position ``(x, y)`` of
+#: :mod:`sb3_hhp.oracles.montezuma`: column about x / 2 + 1.5, top row about 46 + 0.39 (192 - y)), and the key, which
+#: leaves its box when taken. Read from frames of the agent placed there (tests/test_goals_image.py); none lies on the
+#: start, whose frame is the reference. The doors have no box yet: their opening was not reproduced under AtariWrapper.
+MONTEZUMA_LANDMARKS = {
+    "middle ladder's foot": (44, 40, 53, 45),  # (77, 192)
+    "rope": (40, 55, 50, 62),                  # (109, 205)
+    "right ladder's top": (45, 66, 55, 74),    # (133, 192)
+    "right ladder's foot": (62, 67, 72, 75),   # (133, 148)
+    "left ladder's foot": (62, 9, 72, 17),     # (21, 148)
+    "left ladder's top": (45, 9, 55, 17),      # (21, 192)
+    "key": (39, 6, 46, 11),
+}
 
 
 def _channels_first(shape: tuple) -> bool:
@@ -63,6 +79,24 @@ def ale_game(env: gym.Env) -> Optional[str]:
     if not type(base).__module__.startswith("ale_py") or not hasattr(base, "ale"):
         return None
     return getattr(base, "_game", None)
+
+
+def double_frame_skip(env: gym.Env) -> Optional[tuple[int, int]]:
+    """(ALE's frame skip, a wrapper's) when an ALE env skips frames itself (the ``v5`` ids skip 4 by default) under a
+    wrapper that skips frames again (SB3's ``AtariWrapper`` and its ``MaxAndSkipEnv``): each step then spans their
+    product of frames (16); None otherwise."""
+    if ale_game(env) is None:
+        return None
+    own = getattr(env.unwrapped, "_frameskip", 1)
+    if not isinstance(own, int) or own <= 1:  # a tuple is a random skip, which no wrapper stacks on
+        return None
+    layer = env
+    while isinstance(layer, gym.Wrapper):
+        skip = getattr(layer, "_skip", None)
+        if type(layer).__name__ == "MaxAndSkipEnv" and isinstance(skip, int) and skip > 1:
+            return own, skip
+        layer = layer.env
+    return None
 
 
 def montezuma_facts(ram: np.ndarray) -> dict[str, Any]:
@@ -83,7 +117,8 @@ class ImageGoalSpace(GoalSpace):
         SB3's ``AtariWrapper``): rows ``row0`` to ``row1 - 1`` and columns ``col0`` to ``col1 - 1``, as numpy slices.
         None (the default): cells
     :param reference: with ``landmarks``, the frame the boxes are compared with: an observation of the env (e.g. its
-        first after a reset), read as every observation is (the last frame of a stack)
+        first after a reset), read as every observation is (the last frame of a stack); ``"first"``: the first frame this
+        goal space reads (the run's first observation; the boxes are checked against the env's frames when bound)
     :param changed_fraction: share in (0, 1] of a box's pixels that must differ from ``reference`` for its landmark to be
         attained; the paper's 0.2. A pixel differs when its value (any channel of an RGB frame) does
     """
@@ -95,6 +130,8 @@ class ImageGoalSpace(GoalSpace):
     changed_fraction = 0.2
     #: the ALE game of the env this goal space was bound to (:meth:`bind`; None: not an ALE env, or not bound)
     game: Optional[str] = None
+    #: the landmark boxes' names, one each (``landmarks`` given as a mapping), or None
+    landmark_names: Optional[tuple[str, ...]] = None
 
     def __init__(self, cell_shape: tuple[int, int] = (8, 11), levels: int = 8,
                  landmarks: Optional[Sequence[Sequence[int]]] = None, reference: Optional[np.ndarray] = None,
@@ -116,16 +153,26 @@ class ImageGoalSpace(GoalSpace):
             return
         if reference is None:
             raise ValueError("landmarks need a reference frame to compare their boxes with: pass reference= an "
-                             "observation of the env, e.g. env.reset()[0]")
-        self.reference = np.array(self.frame(reference), dtype=np.uint8, copy=True)
-        self.landmarks = self._check_boxes(landmarks, self.reference.shape[:2])
+                             "observation of the env, e.g. env.reset()[0], or reference='first' (the first frame read)")
+        if isinstance(landmarks, dict):
+            self.landmark_names = tuple(str(name) for name in landmarks)
+            landmarks = list(landmarks.values())
+        if isinstance(reference, str):
+            if reference != "first":
+                raise ValueError(f"reference must be a frame of the env or 'first' (the first frame read), got {reference!r}")
+            self.landmarks = self._check_boxes(landmarks, None)  # against the env's frames when bound
+        else:
+            self.reference = np.array(self.frame(reference), dtype=np.uint8, copy=True)
+            self.landmarks = self._check_boxes(landmarks, self.reference.shape[:2])
         # the fewest changed pixels that attain each box: changed >= changed_fraction * area
         self._needed = tuple(max(1, math.ceil(self.changed_fraction * (r1 - r0) * (c1 - c0) - 1e-9))
                              for r0, c0, r1, c1 in self.landmarks)
 
     @staticmethod
-    def _check_boxes(landmarks: Sequence[Sequence[int]], size: tuple[int, int]) -> tuple[tuple[int, int, int, int], ...]:
-        height, width = size
+    def _check_boxes(landmarks: Sequence[Sequence[int]], size: Optional[tuple[int, int]]
+                     ) -> tuple[tuple[int, int, int, int], ...]:
+        """The boxes as tuples, checked to be boxes and (``size``: (height, width) of the frame) to lie inside it."""
+        height, width = size if size is not None else (math.inf, math.inf)
         if len(landmarks) == 0:
             raise ValueError("landmarks must hold at least one box (row0, col0, row1, col1); leave it out for cells")
         boxes = []
@@ -164,11 +211,25 @@ class ImageGoalSpace(GoalSpace):
             raise ValueError(f"This ALE env ({self.game}) observes its raw {ALE_SCREEN[0]}x{ALE_SCREEN[1]} screen: wrap it "
                              "with stable_baselines3.common.atari_wrappers.AtariWrapper (84x84 gray frames, a life lost "
                              "ending the episode; make_atari_env does it), as the atari entry's env_wrapper does")
+        skips = double_frame_skip(env)
+        if skips is not None:
+            raise ValueError(f"This ALE env ({self.game}) skips {skips[0]} frames a step itself and its frame wrapper "
+                             f"{skips[1]} more, {skips[0] * skips[1]} frames a step: make it with frameskip=1 "
+                             "(gym.make(id, frameskip=1), make_atari_env(id, env_kwargs=dict(frameskip=1)), or "
+                             "env_kwargs: {frameskip: 1} in a YAML entry, as the atari entry has)")
         self.facts_per_step = self.game == MONTEZUMA  # 8 bytes of RAM a step
         if self.landmarks is not None:
-            self._check_frame(self.frame(np.zeros(env.observation_space.shape, dtype=np.uint8)), "the env observes")
+            frame = self.frame(np.zeros(env.observation_space.shape, dtype=np.uint8))
+            if self.reference is None:  # reference "first": the boxes against the env's frames
+                self._check_boxes(self.landmarks, frame.shape[:2])
+            else:
+                self._check_frame(frame, "the env observes")
 
     def _check_frame(self, frame: np.ndarray, source: str) -> None:
+        if self.reference is None:  # reference "first": this frame, the first read, becomes it
+            self._check_boxes(self.landmarks, frame.shape[:2])
+            self.reference = np.array(frame, dtype=np.uint8, copy=True)
+            return
         if frame.shape != self.reference.shape:
             raise ValueError(f"The landmarks' reference frame has shape {self.reference.shape} but {source} frames of shape "
                              f"{frame.shape}: take the reference from an observation of this env (wrapped as it is)")
@@ -272,5 +333,7 @@ class ImageGoalSpace(GoalSpace):
         if self._is_landmarks(key):
             if not key[1]:
                 return "no landmark"
+            if self.landmark_names is not None:
+                return ", ".join(self.landmark_names[index] for index in key[1])
             return ("landmark " if len(key[1]) == 1 else "landmarks ") + ", ".join(str(index) for index in key[1])
         return str(key)
