@@ -36,6 +36,7 @@ import cv2
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from stable_baselines3.common.atari_wrappers import MaxAndSkipEnv
 from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
 
 from sb3_hhp.goals.base import SUCCESS_KEY, GoalSpace
@@ -92,9 +93,8 @@ def double_frame_skip(env: gym.Env) -> Optional[tuple[int, int]]:
         return None
     layer = env
     while isinstance(layer, gym.Wrapper):
-        skip = getattr(layer, "_skip", None)
-        if type(layer).__name__ == "MaxAndSkipEnv" and isinstance(skip, int) and skip > 1:
-            return own, skip
+        if isinstance(layer, MaxAndSkipEnv) and layer._skip > 1:
+            return own, layer._skip
         layer = layer.env
     return None
 
