@@ -108,3 +108,19 @@ def test_a_discrete_kind_on_continuous_actions_is_refused() -> None:
 
     with pytest.raises(ValueError, match="kind 'stacked' does not suit"):
         HhP("MlpPolicy", gym.make(REACH), subgoal_learner_kwargs=dict(kind="stacked"))
+
+
+def test_a_goal_space_whose_places_are_not_positions_is_refused() -> None:
+    env = wrap_env(gym.make(REACH))
+    space = FetchGoalSpace()
+    kwargs = dict(subpolicy_kwargs=dict(learning_starts=0, policy_kwargs=dict(net_arch=[16])), seed=0)
+    flat = lambda obs: np.asarray(obs)[..., :2]  # noqa: E731  (x, y) only
+    with pytest.raises(ValueError, match=r"position .* gave shape \(2,\) for each of 1 observations \(expected \(3,\)\)"):
+        GoalConditionedLearner(env.observation_space, env.action_space, flat, space.state_part, space.goal_position,
+                               space.distance_threshold, **kwargs)
+    learner = GoalConditionedLearner(env.observation_space, env.action_space, space.achieved_position, space.state_part,
+                                     lambda key, obs: np.zeros(4), space.distance_threshold, **kwargs)
+    learner.add((1, 0, 0))
+    obs, _ = env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"goal_position .* gave shape \(4,\) for each of 2 observations"):
+        learner.act(np.array([0, 0]), np.stack([obs, obs]), deterministic=True)

@@ -176,6 +176,7 @@ class GoalConditionedLearner:
         self.distance_threshold, self.alpha, self.seed = float(distance_threshold), float(alpha), seed
         sample = np.zeros((1, *observation_space.shape), np.float32)
         state_dim = self.state(sample).shape[1]
+        self._check_places(self.position(sample), 1, "position (the achieved place of a batch of observations)")
         box = lambda n: spaces.Box(-np.inf, np.inf, (n,), np.float32)  # noqa: E731
         self.input_space = spaces.Dict(dict(observation=box(state_dim), achieved_goal=box(3), desired_goal=box(3)))
         self.model = ALGOS[algo]("MultiInputPolicy", SpacesEnv(self.input_space, action_space), buffer_size=1,
@@ -213,7 +214,18 @@ class GoalConditionedLearner:
 
     def places(self, goals: np.ndarray, obs: np.ndarray) -> np.ndarray:
         """The place each env's sub-goal asks for (the env's own target where it pursues none)."""
-        return np.stack([self.goal_position(self.goal_keys[int(g)] if g >= 0 else None, o) for g, o in zip(goals, obs)])
+        places = np.stack([self.goal_position(self.goal_keys[int(g)] if g >= 0 else None, o) for g, o in zip(goals, obs)])
+        return self._check_places(places, len(obs), "goal_position (the place a sub-goal key asks for)")
+
+    @staticmethod
+    def _check_places(places: np.ndarray, n: int, what: str) -> np.ndarray:
+        """``places`` if it holds ``n`` places of 3 coordinates, else a ValueError naming the goal space's ``what``."""
+        places = np.asarray(places)
+        if places.shape != (n, 3):
+            raise ValueError(f"the goal-conditioned learner reads places of 3 coordinates (metres); the goal space's "
+                             f"{what} gave shape {places.shape[1:] if places.ndim else ()} for each of {n} observations "
+                             f"(expected (3,)): make it return an (x, y, z) position, as FetchGoalSpace does")
+        return places
 
     def act(self, goals: np.ndarray, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
         """One action per env towards its sub-goal's place: at random before ``learning_starts`` steps (unless
