@@ -59,6 +59,12 @@ after it (HhP is compared with their mean), in one process: the Atari target's c
 
     python benchmarks/speed.py entry --env ALE/MontezumaRevenge-v5 --start 1000 --stop 2000 --vs-dqn
 
+with ``--vs-her`` (Fetch), against SB3's DDPG + HER (``HerReplayBuffer``, future strategy, 4 goals a transition) with
+the goal-conditioned learner's network sizes, batch size, discount, learning rate and update rate (its gradient
+steps per primitive step), on the raw dict envs, timed as ``--vs-dqn``: the Fetch target's comparison::
+
+    python benchmarks/speed.py entry --env FetchPush-v4 --start 2000 --stop 4000 --vs-her
+
 ``call``: one grouped call of the sub-goal learners' update (``train_rounds``: the two rounds due at a step of the
 envs, each of the entry's ``max_updates`` learners) from one saved state of a run (as ``ab``), repeated, its time split
 with torch's profiler into the batched matrix products (``baddbmm``, ``bmm``: the arithmetic), torch's other
@@ -101,7 +107,7 @@ import numpy as np
 import torch as th
 import yaml
 from rl_zoo3.utils import get_wrapper_class
-from stable_baselines3 import DQN
+from stable_baselines3 import DDPG, DQN, HerReplayBuffer
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
@@ -112,15 +118,18 @@ from sb3_hhp import HhP  # noqa: E402
 from sb3_hhp.extras import import_extra  # noqa: E402
 from sb3_hhp.goals import register_minigrid_tasks, wrap_env  # noqa: E402
 from sb3_hhp.hhp.arguments import SUBGOAL_LEARNER_DEFAULTS  # noqa: E402
+from sb3_hhp.hierarchy.goal_conditioned import DEFAULT_KWARGS as GOAL_CONDITIONED_KWARGS  # noqa: E402
 from sb3_hhp.hierarchy.learners import StackedDQN, default_subpolicy_kwargs  # noqa: E402
 from sb3_hhp.train import ZOO_KEYS, default_config_path, select_entry  # noqa: E402
 
 
 def yaml_entry(env_id: str) -> tuple[str, dict[str, Any]]:
     """The name and the whole entry of ``env_id`` in ``sb3_hhp/hyperparams/hhp.yml`` (ALE's envs registered for an
-    ``ALE/`` id: its entry is its domain's)."""
+    ``ALE/`` id and gymnasium-robotics's for a ``Fetch`` one: its entry is its domain's)."""
     if env_id.startswith("ALE/"):
         gym.register_envs(import_extra("ale_py"))
+    elif env_id.startswith("Fetch"):
+        gym.register_envs(import_extra("gymnasium_robotics"))
     table = yaml.safe_load(default_config_path().read_text())
     name = select_entry(table, env_id)
     return name, table[name]
@@ -223,7 +232,10 @@ def entry_speed(args: argparse.Namespace) -> dict[str, Any]:
     n_envs = args.n_envs or entry.get("n_envs", 1)
     policy = entry.get("policy", "MlpPolicy")
     dqn, compared = None, {}
-    if args.vs_dqn:  # SB3's DQN on the same envs: train_freq 4 and batch 32, one update per 4 primitive steps
+    if args.vs_her:
+        dqn, compared["her"] = her_baseline(args, kwargs, n_envs)
+        compared["her_fps_before"] = timed_window(dqn, args.start, args.stop)
+    elif args.vs_dqn:  # SB3's DQN on the same envs: train_freq 4 and batch 32, one update per 4 primitive steps
         dqn = DQN(policy, make_envs(args.env, n_envs, args.seed, wrapper), batch_size=32,
                   train_freq=4 if n_envs == 1 else TrainFreq(1, TrainFrequencyUnit.STEP),
                   gradient_steps=max(1, n_envs // 4), buffer_size=50_000, learning_starts=min(100, args.start),
@@ -233,10 +245,11 @@ def entry_speed(args: argparse.Namespace) -> dict[str, Any]:
     model = HhP(policy, make_envs(args.env, n_envs, args.seed, wrapper), seed=args.seed, **as_trained(kwargs, folder))
     fps = timed_window(model, args.start, args.stop)
     if dqn is not None:  # again right after HhP, over as many steps (the machine drifts): HhP against the mean
-        compared["dqn_fps_after"] = timed_steps(dqn, args.stop - args.start)
-        compared["dqn_fps"] = (compared["dqn_fps_before"] + compared["dqn_fps_after"]) / 2
-        compared = {key: round(value, 2) for key, value in compared.items()}
-        compared["ratio"] = round(fps / compared["dqn_fps"], 3)
+        name = "her" if args.vs_her else "dqn"
+        compared[f"{name}_fps_after"] = timed_steps(dqn, args.stop - args.start)
+        compared[f"{name}_fps"] = (compared[f"{name}_fps_before"] + compared[f"{name}_fps_after"]) / 2
+        compared = {key: round(value, 2) if isinstance(value, float) else value for key, value in compared.items()}
+        compared["ratio"] = round(fps / compared[f"{name}_fps"], 3)
     return dict(env=args.env, hhp_kwargs=json.loads(args.hhp_kwargs), window=[args.start, args.stop], seed=args.seed,
                 n_envs=n_envs, policy=policy, device=str(model.device), hhp_fps=round(fps, 2), **compared,
                 num_subgoals=len(model.subgoals), meta_updates=model._n_updates,
@@ -441,13 +454,46 @@ def learner_call(args: argparse.Namespace) -> dict[str, Any]:
                 top_torch_ops_ms={event.key: round(event.self_cpu_time_total / 1000 / calls, 3) for event in top}, **compared)
 
 
+def her_baseline(args: argparse.Namespace, kwargs: dict[str, Any], n_envs: int) -> tuple[DDPG, dict[str, Any]]:
+    """SB3's DDPG + HER doing the goal-conditioned learner's work per primitive step (its network sizes, batch
+    size, discount, learning rate, gradient steps a step and learning start), on the raw dict envs; and those settings."""
+    sub = {**GOAL_CONDITIONED_KWARGS, **kwargs.get("subpolicy_kwargs", {})}
+    same = dict(batch_size=sub["batch_size"], gamma=sub["gamma"], learning_rate=sub["learning_rate"],
+                gradient_steps=sub["gradient_steps"] * n_envs, learning_starts=sub["learning_starts"])
+    net_arch = sub["policy_kwargs"]["net_arch"]
+    model = DDPG("MultiInputPolicy", make_envs(args.env, n_envs, args.seed, wrapper=None), train_freq=1,
+                 replay_buffer_class=HerReplayBuffer,
+                 replay_buffer_kwargs=dict(n_sampled_goal=4, goal_selection_strategy="future"),
+                 buffer_size=100_000, policy_kwargs=dict(net_arch=net_arch), seed=args.seed,
+                 device=kwargs.get("device", "auto"), **same)
+    return model, dict(algo="DDPG + HER", net_arch=net_arch, hhp_learner=sub["algo"], **same)
+
+
+def fetch_states(env: gym.Env, space: Any, n: int, seed: int) -> list[np.ndarray]:
+    """``n`` observations of a Fetch env (flat) with the achieved position in ``n`` distinct cells: a reset state
+    whose achieved position is moved over a lattice 6 cm apart around where it starts (random play seldom moves
+    an object)."""
+    obs, _ = env.reset(seed=seed)
+    side = int(np.ceil(n ** (1 / 3)))
+    offsets = (np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3) - (side - 1) / 2) * 0.06
+    states = []
+    for offset in offsets[:n]:
+        state = obs.copy()
+        state[-6:-3] += offset.astype(state.dtype)
+        states.append(state)
+    assert len({space.key(state) for state in states}) == n
+    return states
+
+
 def distinct_states(env_id: str, n: int, seed: int, wrapper: Any = wrap_env) -> list[np.ndarray]:
     """``n`` observations from random play (the env wrapped with ``wrapper``), of as many distinct sub-goal keys as
-    the env shows (then repeated)."""
-    from sb3_hhp.goals import make_goal_space
+    the env shows (then repeated); on Fetch, ``n`` distinct places (:func:`fetch_states`)."""
+    from sb3_hhp.goals import FetchGoalSpace, make_goal_space
 
     env = wrapper(gym.make(env_id))
     space = make_goal_space("auto", env)
+    if isinstance(space, FetchGoalSpace):
+        return fetch_states(env, space, n, seed)
     rng = np.random.default_rng(seed)
     by_key: dict[Any, np.ndarray] = {}
     for episode in range(50):
@@ -566,6 +612,8 @@ def main() -> None:
     parser.add_argument("--learners-b", default='{"grouped_rounds": true}', help="ab: JSON, the same for B")
     parser.add_argument("--repeats", type=int, default=4, help="ab, parts: pairs; call: 25 calls a repeat")
     parser.add_argument("--vs-dqn", action="store_true", help="entry: SB3's DQN timed over the same window beside HhP")
+    parser.add_argument("--vs-her", action="store_true",
+                        help="entry (Fetch): SB3's DDPG + HER with the sub-goal learner's sizes, over the same window")
     parser.add_argument("--call-ab", action="store_true",
                         help="call: also time --learners-a against --learners-b, --repeats alternating blocks of 25 calls")
     parser.add_argument("--out", default="benchmarks/results/speed")

@@ -48,6 +48,14 @@ def test_without_hindsight_the_goal_is_the_one_pursued_and_eq6_adds_curiosity() 
     np.testing.assert_allclose(rewards, 0.5 * np.where(envs == 0, 0.2, 0.4), rtol=1e-6)  # never reached: 0 + alpha r^i
 
 
+def test_the_replay_counts_the_bytes_of_all_its_arrays() -> None:
+    replay = filled(future_p=0.0)
+    # 40 transitions of 2 envs (20 steps each): obs and next obs 2 floats, action 1, two places of 3, curiosity one
+    # float, termination one bool, step ids and episode ends one int64 each; the episodes' starts one int64 an env
+    per_row = 4 * (2 + 2 + 1 + 3 + 3 + 1) + 1 + 8 + 8
+    assert replay.nbytes() == 40 * per_row + 2 * 8
+
+
 def test_a_termination_short_of_the_goal_costs_one() -> None:
     replay = HindsightReplay(2, 1, 10, 1, future_p=0.0, distance_threshold=0.05, alpha=0.0, seed=0)
     replay.add(np.zeros((1, 2)), np.zeros((1, 2)), np.zeros((1, 1)), np.zeros((1, 3)), np.ones((1, 3)), np.zeros(1),

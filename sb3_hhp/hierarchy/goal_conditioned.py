@@ -75,6 +75,10 @@ class HindsightReplay:
     def size(self) -> int:
         return min(self.count, self.steps) * self.n_envs
 
+    def nbytes(self) -> int:
+        """Bytes of the replay's arrays (allocated whole at construction: the same for every number of sub-goals)."""
+        return sum(array.nbytes for array in self.state().values() if isinstance(array, np.ndarray))
+
     def add(self, obs: np.ndarray, next_obs: np.ndarray, actions: np.ndarray, achieved: np.ndarray, goals: np.ndarray,
             intrinsic: np.ndarray, terminated: np.ndarray, ended: np.ndarray) -> None:
         """One step of every env; ``ended``: its episode ended with this step (a time limit or a termination)."""
