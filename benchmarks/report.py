@@ -611,10 +611,10 @@ def _code(data: dict) -> str:
 
 
 def _speed_row(path: Path, data: dict) -> list[str]:
-    dqn = data.get("dqn_fps")
+    name, fps = ("DDPG + HER", data["her_fps"]) if "her_fps" in data else ("DQN", data.get("dqn_fps"))
     return [f"`{path.name}`", _code(data), data["env"], str(data.get("n_envs", 1)), f"{data['window'][0]:,}-{data['window'][1]:,}",
             f"`{json.dumps(data.get('hhp_kwargs') or {})}`", f"{data['hhp_fps']:.1f}",
-            f"{dqn:.1f}" if dqn is not None else "–", f"{data['ratio']:.2f}" if dqn is not None else "–",
+            f"{name} {fps:.1f}" if fps is not None else "–", f"{data['ratio']:.2f}" if fps is not None else "–",
             str(data.get("num_subgoals", "–")), f"{data['load_average_start']:.1f}-{data['load_average_end']:.1f}"]
 
 
@@ -642,13 +642,15 @@ def speed_section(root: Path) -> str:
         ("file", "code", "env", "steps", "HhP arguments", "sub-goals", "ms a step", "cost ratio", "replay MB", "memory ratio"),
         "lllrlrrrrr", _subgoals_row)
     return json_section(
-        _speed_files(root, "hhp_fps"), "Speed beside SB3's DQN",
+        _speed_files(root, "hhp_fps"), "Speed beside SB3's DQN and DDPG + HER",
         "`python benchmarks/speed.py entry --env ENV --start A --stop B --vs-dqn --hhp-kwargs JSON --name NAME` times HhP "
         "as the env's YAML entry trains it (with the arguments shown over the entry's) and SB3's DQN on the same envs "
-        "(train_freq 4, batch 32) over primitive steps A-B, in one process, one torch thread; DQN's figure is the mean "
-        "of its window before and after HhP's. The load average is the machine's (2 cores) at the start and the end; "
-        "code: the commit measured.",
-        ("file", "code", "env", "envs", "steps", "HhP arguments", "HhP steps/s", "DQN steps/s", "ratio", "sub-goals", "load"),
+        "(train_freq 4, batch 32) over primitive steps A-B, in one process, one torch thread; `--vs-her` instead of "
+        "`--vs-dqn` times SB3's DDPG + HER (future goals, 4 per transition, [256, 256], batch 256, gamma 0.95, lr 1e-3). "
+        "The baseline's figure is the mean of its window before and after HhP's. The load average is the machine's "
+        "(2 cores) at the start and the end; code: the commit measured.",
+        ("file", "code", "env", "envs", "steps", "HhP arguments", "HhP steps/s", "baseline steps/s", "ratio", "sub-goals",
+         "load"),
         "lllrrlrrrrr", _speed_row) + ("\n" + subgoals if subgoals else "")
 
 

@@ -665,7 +665,8 @@ def test_report_shows_runs_that_have_no_row_yet(tmp_path):
 
 
 def test_report_speed_section_rows_from_the_speed_files(tmp_path):
-    """``speed.py``'s JSON files under ``results/speed`` make one row each: HhP's and DQN's steps/s and their ratio."""
+    """``speed.py``'s JSON files under ``results/speed`` make one row each: HhP's and its baseline's (DQN or DDPG + HER)
+    steps/s and their ratio."""
     speed = tmp_path / report.RESULTS / "speed"
     speed.mkdir(parents=True)
     (speed / "atari.json").write_text(json.dumps(dict(
@@ -674,8 +675,14 @@ def test_report_speed_section_rows_from_the_speed_files(tmp_path):
         code=dict(commit="abcdef0123", changed=["sb3_hhp/hhp/hhp.py"]))))
     text = report.speed_section(tmp_path)
     assert text.startswith("## Speed beside SB3's DQN")
-    assert ('| `atari.json` | abcdef0+ | ALE/MontezumaRevenge-v5 | 1 | 1,000-2,000 | `{"meta_kwargs": {"n_opt": 4}}` | 30.0 | 90.0 | '
+    assert ('| `atari.json` | abcdef0+ | ALE/MontezumaRevenge-v5 | 1 | 1,000-2,000 | `{"meta_kwargs": {"n_opt": 4}}` | 30.0 | DQN 90.0 | '
             '0.33 | 1 | 1.0-2.0 |') in text
+    (speed / "push.json").write_text(json.dumps(dict(
+        env="FetchPush-v4", n_envs=1, window=[2000, 4000], hhp_kwargs={}, hhp_fps=24.0, her_fps=40.0, ratio=0.6,
+        num_subgoals=3, load_average_start=1.0, load_average_end=1.2)))
+    assert "| `push.json` | – | FetchPush-v4 | 1 | 2,000-4,000 | `{}` | 24.0 | DDPG + HER 40.0 | 0.60 | 3 | 1.0-1.2 |" in (
+        report.speed_section(tmp_path))
+    (speed / "push.json").unlink()
     assert "many sub-goals" not in text
     (speed / "costs.json").write_text(json.dumps(dict(
         env="ALE/MontezumaRevenge-v5", window=[500, 1500], hhp_kwargs={}, cost_ratio=3.136, memory_ratio=1.899,
