@@ -126,8 +126,32 @@ def test_adaptive_threshold_is_the_window_quantile():
     assert selector.used == 2
 
 
-def test_adaptive_mode_needs_total_timesteps():
-    selector = QuerySelector(budget=10, mode="adaptive")
+def test_paced_mode_asks_only_above_t_qry_and_within_the_pace():
+    # the same window and quota as above: the adaptive threshold is the median 0.225; t_qry 0.3 lies above it
+    q_values = np.tile([0.0, 1.0], (4, 1))
+    goals = np.zeros(4, dtype=int)
+    new = np.array([0.05, 0.35, 0.15, 0.25])
+    selectors = {mode: QuerySelector(budget=100, threshold=0.3, mode=mode, total_timesteps=100, quantile_window=8)
+                 for mode in ("adaptive", "paced")}
+    asked = {}
+    for mode, selector in selectors.items():
+        selector.select(np.array([0.1, 0.2, 0.3, 0.4]), goals, q_values, num_timesteps=0)
+        asked[mode] = selector.select(new, goals, q_values, num_timesteps=2)
+    assert asked["adaptive"] == [(1, 1), (3, 1)]
+    assert asked["paced"] == [(1, 1)]  # 0.25 lies below t_qry: not asked, however much of the quota is left
+    assert selectors["paced"].current_threshold == pytest.approx(0.3) and selectors["paced"].used == 1
+    # a sure predictor asks nothing, even at the last call, which the adaptive mode spends in full
+    for mode, selector in selectors.items():
+        asked[mode] = selector.select(np.array([0.1, 0.2, 0.3, 0.29]), goals, q_values, num_timesteps=99)
+    assert len(asked["adaptive"]) == 4 and asked["paced"] == []
+    # and where unsure, no more than the paced allowance: 3 questions by step 3 of 100
+    paced = QuerySelector(budget=100, threshold=0.3, mode="paced", total_timesteps=100, quantile_window=8)
+    assert len(paced.select(np.full(4, 0.9), goals, q_values, num_timesteps=3)) == 3
+
+
+@pytest.mark.parametrize("mode", ["adaptive", "paced"])
+def test_adaptive_mode_needs_total_timesteps(mode):
+    selector = QuerySelector(budget=10, mode=mode)
     with pytest.raises(ValueError, match="total_timesteps"):
         selector.select(np.ones(2), np.zeros(2, dtype=int), np.ones((2, 2)), num_timesteps=5)
     selector.set_total_timesteps(10)

@@ -17,7 +17,7 @@ from sb3_hhp.hierarchy.learners import PAPER_SUBPOLICY_KWARGS
 from sb3_hhp.preferences.predictor import PreferencePredictor
 
 #: ``query_kwargs``: the query selection (:class:`~sb3_hhp.preferences.query.QuerySelector`): the paper's t_qry
-#: (``threshold``, fixed mode), the pacing ``mode`` ("adaptive" or "fixed"), the ``horizon`` in primitive steps over
+#: (``threshold``), the pacing ``mode`` ("adaptive", "fixed" or "paced"), the ``horizon`` in primitive steps over
 #: which the adaptive mode paces the budget (None: the ``total_timesteps`` of each ``learn`` call), how the second
 #: sub-goal of a question is chosen (``second``: "meta", the paper's, or "unasked"), whether the state of every
 #: choice is rendered for the questions' images (``record_images``; None: when a person answers and the goal space

@@ -24,6 +24,10 @@ Two modes:
   so the whole budget is used by the end of training. The window quantile lags behind confidences
   that drift (a predictor grows surer as it learns): keep ``quantile_window`` to a small part of
   all the tuples a run sees.
+* ``"paced"``: both rules at once, asking only when unsure and within the paced budget: the adaptive
+  mode's threshold, never below ``t_qry`` (the last call too). A tuple is asked about only where
+  ``c > t_qry``, at most the adaptive quota of them, so a predictor that has grown sure stops asking
+  and the budget need not be spent.
 """
 
 import math
@@ -32,7 +36,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-MODES = ("fixed", "adaptive")
+MODES = ("fixed", "adaptive", "paced")
 #: how the second sub-goal of a question is chosen (:class:`QuerySelector`'s ``second``)
 SECONDS = ("meta", "unasked")
 
@@ -45,8 +49,9 @@ class QuerySelector:
     :param threshold: ``t_qry``: ask when the confidence exceeds it (>= 0; paper: 0.26 MiniGrid,
         0.42 Atari and MuJoCo). Used by the "fixed" mode; the "adaptive" mode starts from it
         (``current_threshold`` before any data) and then sets its own
-    :param mode: "fixed" (the paper's constant threshold) or "adaptive" (budget paced over
-        training, threshold from a running quantile; see the module docstring)
+    :param mode: "fixed" (the paper's constant threshold), "adaptive" (budget paced over
+        training, threshold from a running quantile) or "paced" (the adaptive threshold, never below
+        ``threshold``); see the module docstring
     :param total_timesteps: length of training in primitive steps (> 0), needed by the adaptive
         mode; ``HhP.learn`` sets it through :meth:`set_total_timesteps`
     :param quantile_window: number of recent confidences the adaptive quantile is taken over (>= 1)
@@ -164,7 +169,7 @@ class QuerySelector:
             raise ValueError("confidences contain NaN")
         if num_timesteps < 0:
             raise ValueError(f"num_timesteps must be >= 0, got {num_timesteps}")
-        if self.mode == "adaptive" and self.total_timesteps is None:
+        if self.mode != "fixed" and self.total_timesteps is None:
             self.allowance(num_timesteps)  # raises with the fix
         if n == 0:
             return []
@@ -200,13 +205,16 @@ class QuerySelector:
             if quota == 0 or len(askable) == 0:
                 self.current_threshold = math.inf
                 chosen = askable[:0]
-            elif last_call:  # no later call expected: spend the quota on this episode's least confident tuples
-                self.current_threshold = float(np.sort(c)[::-1][min(quota, len(c)) - 1])
-                chosen = askable[c >= self.current_threshold]
             else:
-                fraction = min(1.0, quota / len(askable))
-                self.current_threshold = float(np.quantile(np.fromiter(self._window, float), 1.0 - fraction))
+                if last_call:  # no later call expected: spend the quota on this episode's least confident tuples
+                    self.current_threshold = float(np.sort(c)[::-1][min(quota, len(c)) - 1])
+                else:
+                    fraction = min(1.0, quota / len(askable))
+                    self.current_threshold = float(np.quantile(np.fromiter(self._window, float), 1.0 - fraction))
                 chosen = askable[c >= self.current_threshold]
+                if self.mode == "paced":  # and only where unsure: c(s, g) > t_qry
+                    self.current_threshold = max(self.current_threshold, self.threshold)
+                    chosen = askable[(c >= self.current_threshold) & (c > self.threshold)]
         if len(chosen) > quota:  # keep the least confident (highest c); ties go to the earlier tuple
             order = np.argsort(-confidences[chosen], kind="stable")
             chosen = np.sort(chosen[order[:quota]])
