@@ -718,12 +718,31 @@ def test_the_speed_script_times_an_entry_as_it_trains() -> None:
     from benchmarks import speed
 
     result = speed.entry_speed(argparse.Namespace(env="MiniGrid-Empty-5x5-v0", hhp_kwargs='{"device": "cpu"}', seed=0,
-                                                  start=100, stop=300, n_envs=None, vs_dqn=True))
+                                                  start=100, stop=300, n_envs=None, vs_dqn=True, vs_her=False))
     assert result["n_envs"] == 1 and result["policy"] == "MlpPolicy" and result["device"] == "cpu"  # the entry's
     assert result["window"] == [100, 300] and result["hhp_fps"] > 0 and result["num_subgoals"] >= 1
     # SB3's DQN timed over the same window before and after HhP, HhP against their mean
     assert result["dqn_fps_before"] > 0 and result["dqn_fps_after"] > 0
     assert result["ratio"] == pytest.approx(result["hhp_fps"] / result["dqn_fps"], rel=0.01)
+
+
+def test_the_speed_script_times_a_fetch_entry_beside_ddpg_with_her() -> None:
+    """``speed.py entry --vs-her``: SB3's DDPG with a HerReplayBuffer on the same Fetch env, timed before and after."""
+    import argparse
+
+    from stable_baselines3 import DDPG
+    from stable_baselines3.her import HerReplayBuffer
+
+    from benchmarks import speed
+
+    args = argparse.Namespace(env="FetchReach-v4", hhp_kwargs='{"device": "cpu"}', seed=0, start=20, stop=60,
+                              n_envs=None, vs_dqn=False, vs_her=True)
+    baseline, settings = speed.her_baseline(args, speed.hhp_kwargs(speed.yaml_entry(args.env)[1], args.hhp_kwargs), 1)
+    assert isinstance(baseline, DDPG) and isinstance(baseline.replay_buffer, HerReplayBuffer)
+    assert baseline.replay_buffer.n_sampled_goal == 4 and settings["algo"] == "DDPG + HER"
+    result = speed.entry_speed(args)
+    assert result["her_fps_before"] > 0 and result["her_fps_after"] > 0 and "dqn_fps" not in result
+    assert result["ratio"] == pytest.approx(result["hhp_fps"] / result["her_fps"], rel=0.01)
 
 
 def test_the_speed_script_splits_a_learner_call() -> None:
