@@ -646,7 +646,7 @@ def speed_section(root: Path) -> str:
         "`python benchmarks/speed.py entry --env ENV --start A --stop B --vs-dqn --hhp-kwargs JSON --name NAME` times HhP "
         "as the env's YAML entry trains it (with the arguments shown over the entry's) and SB3's DQN on the same envs "
         "(train_freq 4, batch 32) over primitive steps A-B, in one process, one torch thread; `--vs-her` instead of "
-        "`--vs-dqn` times SB3's DDPG + HER (future goals, 4 per transition, [256, 256], batch 256, gamma 0.95, lr 1e-3). "
+        "`--vs-dqn` times SB3's DDPG + HER with the sub-goal learner's settings (the file's `her`). "
         "The baseline's figure is the mean of its window before and after HhP's. The load average is the machine's "
         "(2 cores) at the start and the end; code: the commit measured.",
         ("file", "code", "env", "envs", "steps", "HhP arguments", "HhP steps/s", "baseline steps/s", "ratio", "sub-goals",

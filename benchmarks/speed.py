@@ -231,22 +231,22 @@ def entry_speed(args: argparse.Namespace) -> dict[str, Any]:
     wrapper = get_wrapper_class(entry)  # the entry's env_wrapper, as RL Zoo reads it
     n_envs = args.n_envs or entry.get("n_envs", 1)
     policy = entry.get("policy", "MlpPolicy")
-    dqn, compared = None, {}
+    baseline, compared = None, {}
     if args.vs_her:
-        dqn, compared["her"] = her_baseline(args, kwargs, n_envs)
-        compared["her_fps_before"] = timed_window(dqn, args.start, args.stop)
+        baseline, compared["her"] = her_baseline(args, kwargs, n_envs)
+        compared["her_fps_before"] = timed_window(baseline, args.start, args.stop)
     elif args.vs_dqn:  # SB3's DQN on the same envs: train_freq 4 and batch 32, one update per 4 primitive steps
-        dqn = DQN(policy, make_envs(args.env, n_envs, args.seed, wrapper), batch_size=32,
-                  train_freq=4 if n_envs == 1 else TrainFreq(1, TrainFrequencyUnit.STEP),
-                  gradient_steps=max(1, n_envs // 4), buffer_size=50_000, learning_starts=min(100, args.start),
-                  seed=args.seed, device=kwargs.get("device", "auto"))
-        compared["dqn_fps_before"] = timed_window(dqn, args.start, args.stop)
+        baseline = DQN(policy, make_envs(args.env, n_envs, args.seed, wrapper), batch_size=32,
+                       train_freq=4 if n_envs == 1 else TrainFreq(1, TrainFrequencyUnit.STEP),
+                       gradient_steps=max(1, n_envs // 4), buffer_size=50_000, learning_starts=min(100, args.start),
+                       seed=args.seed, device=kwargs.get("device", "auto"))
+        compared["dqn_fps_before"] = timed_window(baseline, args.start, args.stop)
     folder = pathlib.Path(tempfile.mkdtemp(prefix="hhp_speed_"))
     model = HhP(policy, make_envs(args.env, n_envs, args.seed, wrapper), seed=args.seed, **as_trained(kwargs, folder))
     fps = timed_window(model, args.start, args.stop)
-    if dqn is not None:  # again right after HhP, over as many steps (the machine drifts): HhP against the mean
+    if baseline is not None:  # again right after HhP, over as many steps (the machine drifts): HhP against the mean
         name = "her" if args.vs_her else "dqn"
-        compared[f"{name}_fps_after"] = timed_steps(dqn, args.stop - args.start)
+        compared[f"{name}_fps_after"] = timed_steps(baseline, args.stop - args.start)
         compared[f"{name}_fps"] = (compared[f"{name}_fps_before"] + compared[f"{name}_fps_after"]) / 2
         compared = {key: round(value, 2) if isinstance(value, float) else value for key, value in compared.items()}
         compared["ratio"] = round(fps / compared[f"{name}_fps"], 3)

@@ -5,7 +5,7 @@ every (state, chosen sub-goal) tuple. A tuple is asked about when ``c > t_qry``;
 sub-goal ``g2`` shown next to ``g`` is the meta-controller's second choice. A query budget caps
 the total number of questions over the whole training run.
 
-Two modes:
+Three modes:
 
 * ``"fixed"``: the paper's rule, a constant threshold ``t_qry`` (0.26 MiniGrid, 0.42 Atari/MuJoCo).
 * ``"adaptive"`` (design decisions: adaptive threshold; the paper's future work): the budget is paced over training.
@@ -47,8 +47,8 @@ class QuerySelector:
     :param budget: most questions over the whole training run (>= 0; paper: 50-200 MiniGrid,
         750 MuJoCo, 3000 Atari)
     :param threshold: ``t_qry``: ask when the confidence exceeds it (>= 0; paper: 0.26 MiniGrid,
-        0.42 Atari and MuJoCo). Used by the "fixed" mode; the "adaptive" mode starts from it
-        (``current_threshold`` before any data) and then sets its own
+        0.42 Atari and MuJoCo). Used by the "fixed" mode and as the "paced" mode's floor; the "adaptive"
+        mode starts from it (``current_threshold`` before any data) and then sets its own
     :param mode: "fixed" (the paper's constant threshold), "adaptive" (budget paced over
         training, threshold from a running quantile) or "paced" (the adaptive threshold, never below
         ``threshold``); see the module docstring
@@ -211,10 +211,11 @@ class QuerySelector:
                 else:
                     fraction = min(1.0, quota / len(askable))
                     self.current_threshold = float(np.quantile(np.fromiter(self._window, float), 1.0 - fraction))
-                chosen = askable[c >= self.current_threshold]
+                asked = c >= self.current_threshold
                 if self.mode == "paced":  # and only where unsure: c(s, g) > t_qry
                     self.current_threshold = max(self.current_threshold, self.threshold)
-                    chosen = askable[(c >= self.current_threshold) & (c > self.threshold)]
+                    asked &= c > self.threshold
+                chosen = askable[asked]
         if len(chosen) > quota:  # keep the least confident (highest c); ties go to the earlier tuple
             order = np.argsort(-confidences[chosen], kind="stable")
             chosen = np.sort(chosen[order[:quota]])
