@@ -262,7 +262,9 @@ def test_landmarks_on_montezuma_frames_under_atari_wrapper() -> None:
 def test_montezuma_landmarks_are_attained_where_the_agent_stands_and_where_the_key_was_taken() -> None:
     """The named goal space ``montezuma_landmarks``: its reference the first frame read (the reset's), no landmark at
     the start; the agent placed (RAM x, y) at each place of the way attains that place's box alone; the key's box
-    once the key has left the first room (its objects' bit 0x01)."""
+    once the key has left the first room (its objects' bit 0x01); a door's box once the agent, placed on the door's
+    floor with the key (inventory bit 0x02), has walked into it and opened it (reward 300, clipped to 1), and not
+    where the agent without the key stands stopped at it."""
     ale_py = pytest.importorskip("ale_py", reason='needs the [atari] extra: pip install "sb3_hhp[atari]"')
     from stable_baselines3.common.atari_wrappers import AtariWrapper
 
@@ -270,28 +272,40 @@ def test_montezuma_landmarks_are_attained_where_the_agent_stands_and_where_the_k
 
     gym.register_envs(ale_py)
 
-    def placed(ram: dict) -> tuple:
+    def placed(ram: dict, action: int = 0, steps: int = 2, settle: int = 0) -> tuple:
+        """The goal space and the key of the frame after ``steps`` of ``action`` from the RAM's ``ram`` set after
+        ``settle`` no-ops (the reset's jump over), and the rewards of those steps."""
         env = AtariWrapper(gym.make("ALE/MontezumaRevenge-v5", frameskip=1, repeat_action_probability=0.0), noop_max=0,
                            terminal_on_life_loss=False)
         space = make_goal_space("montezuma_landmarks", env)
         assert space.reference is None  # "first": the first frame read
         start, _ = env.reset(seed=0)
         assert space.key(start) == ("landmarks", ()) and np.array_equal(space.reference, start[..., 0])
+        for _ in range(settle):
+            env.step(0)
         for address, value in ram.items():
             env.unwrapped.ale.setRAM(address, value)
-        for _ in range(2):
-            obs, *_ = env.step(0)
-        return space, space.key(obs)
+        rewards = []
+        for _ in range(steps):
+            obs, reward, *_ = env.step(action)
+            rewards.append(reward)
+        return space, space.key(obs), rewards
 
     names = list(MONTEZUMA_LANDMARKS)
     places = {"middle ladder's foot": (77, 192), "rope": (109, 205), "right ladder's top": (133, 192),
               "right ladder's foot": (133, 148), "left ladder's foot": (21, 148), "left ladder's top": (21, 192)}
     for name, (x, y) in places.items():
-        space, key = placed({42: x, 43: y})
+        space, key, _ = placed({42: x, 43: y})
         assert key == ("landmarks", (names.index(name),)), name
         assert space.describe(key) == name
-    space, key = placed({67: 30})  # the key gone from the first room
+    space, key, _ = placed({67: 30})  # the key gone from the first room
     assert space.describe(key) == "key"
+    left, right = 4, 3  # the ALE actions LEFT and RIGHT
+    for name, x, action in (("left door", 40, left), ("right door", 115, right)):  # on the door's floor, walking to it
+        space, key, rewards = placed({42: x, 65: 0x02}, action, steps=8, settle=10)
+        assert 1.0 in rewards and key == ("landmarks", (names.index(name),)), (name, rewards, key)
+        space, key, rewards = placed({42: x}, action, steps=20, settle=10)  # no key: stopped at the closed door
+        assert 1.0 not in rewards and key == ("landmarks", ()), (name, rewards, key)
 
 
 def test_reference_first_and_its_bad_input() -> None:

@@ -53,8 +53,9 @@ _MONTEZUMA_ADDRESSES = np.array(list(MONTEZUMA_RAM.values()), dtype=np.int64)
 #: landmark boxes ``(row0, col0, row1, col1)`` of Montezuma's first room in SB3's ``AtariWrapper`` frames (84x84), each
 #: where the agent's sprite stands at a place on the way to the key and back (RAM position ``(x, y)`` of
 #: :mod:`sb3_hhp.oracles.montezuma`: column about x / 2 + 1.5, top row about 46 + 0.39 (192 - y)), and the key, which
-#: leaves its box when taken. Read from frames of the agent placed there (tests/test_goals_image.py); none lies on the
-#: start, whose frame is the reference. The doors have no box yet: their opening was not reproduced under AtariWrapper.
+#: leaves its box when taken, and the two doors, which leave theirs when opened with the key (the agent stopped at a
+#: closed door changes 8 % of its box). Read from frames of the agent placed there (tests/test_goals_image.py); none
+#: lies on the start, whose frame is the reference.
 MONTEZUMA_LANDMARKS = {
     "middle ladder's foot": (44, 40, 53, 45),  # (77, 192)
     "rope": (40, 55, 50, 62),                  # (109, 205)
@@ -63,6 +64,8 @@ MONTEZUMA_LANDMARKS = {
     "left ladder's foot": (62, 9, 72, 17),     # (21, 148)
     "left ladder's top": (45, 9, 55, 17),      # (21, 192)
     "key": (39, 6, 46, 11),
+    "left door": (21, 10, 37, 13),
+    "right door": (21, 71, 37, 74),
 }
 
 
