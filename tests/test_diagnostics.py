@@ -294,3 +294,25 @@ def test_choice_orders_fit_an_order_per_state_key_only_where_asked() -> None:
     labels = random_labels(train, 40, seed=0)
     assert 0 < len(labels) < 40  # pairs (1, 2) or (0, 2) of equal rank are spent
     assert all(r["ranks"][a] < r["ranks"][b] for r, a, b in labels)
+
+
+def test_fetch_oracle_pairs_along_a_scripted_pick_and_place() -> None:
+    """The scripted pick and place solves its episode; along it, every pair of states before the block moves is keyed
+    alike and answered "equal" by the Fetch oracle (it reads only the block's place), and the pairs where the block came
+    nearer the target are answered "the later", none "the earlier"."""
+    import pytest
+
+    pytest.importorskip("gymnasium_robotics", reason='needs the [fetch] extra: pip install "sb3_hhp[fetch]"')
+    from benchmarks.diagnostics.fetch_oracle import episode, pair_readings
+    from sb3_hhp.extras import register_fetch_envs
+    from sb3_hhp.goals.fetch import FetchGoalSpace
+    from sb3_hhp.oracles.fetch import FetchScriptedOracle
+
+    register_fetch_envs()
+    states, solved = episode("FetchPickAndPlace-v4", seed=0)
+    assert solved and len(states) == 51
+    space, oracle = FetchGoalSpace(), FetchScriptedOracle()
+    counts = pair_readings(states, every=3, moved=0.01, space=space, oracle=oracle)
+    reach, carry = counts["reach"], counts["carry"]
+    assert reach["equal"] > 0 and reach["later"] == reach["earlier"] == 0 and reach["same_key"] >= 0.9 * reach["equal"]
+    assert carry["later"] > 5 * carry["equal"] and carry["earlier"] == 0
