@@ -80,9 +80,10 @@ def test_the_shipped_sweeps_parse():
     count_doors = load_sweep(EXPERIMENTS / "minigrid_count_doors.yml")
     assert count_doors.hhp_options("hhp_count_doors") == (
         "--hyperparams", "goal_space:'minigrid_count_doors'", "meta_kwargs:dict(success_bonus='best')")
-    fetch = load_sweep(EXPERIMENTS / "fetch_reach.yml")  # HhP and DDPG + HER on 3 seeds, TQC + HER on 1 (the anchor)
+    fetch = load_sweep(EXPERIMENTS / "fetch_reach.yml")  # HhP and DDPG + HER on 3 seeds, TQC + HER and DDPG on 1
     assert [(e.variant, e.seed) for e in fetch.experiments] == [
-        ("hhp", 0), ("hhp", 1), ("hhp", 2), ("ddpg_her", 0), ("ddpg_her", 1), ("ddpg_her", 2), ("tqc_her", 0)]
+        ("hhp", 0), ("hhp", 1), ("hhp", 2), ("ddpg_her", 0), ("ddpg_her", 1), ("ddpg_her", 2), ("tqc_her", 0),
+        ("ddpg", 0)]
     for path in sorted(EXPERIMENTS.glob("*.yml")):  # every sweep shipped parses
         assert load_sweep(path, check_envs=False).experiments, path.name
 
