@@ -43,6 +43,17 @@ def _parts(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return obs[0:3], obs[3:6], obs[-3:]
 
 
+def _counts() -> dict[str, dict[str, int]]:
+    """Empty counts of the oracle's answers by kind of pair (:func:`pair_readings`)."""
+    return {"reach": {"later": 0, "equal": 0, "earlier": 0, "same_key": 0},
+            "carry": {"later": 0, "equal": 0, "earlier": 0}}
+
+
+def _still(obs: np.ndarray, block_start: np.ndarray) -> bool:
+    """Whether the block lies within :data:`STILL` of where it started."""
+    return bool(np.linalg.norm(_parts(obs)[1] - block_start) <= STILL)
+
+
 def _towards(grip: np.ndarray, aim: np.ndarray, fingers: float) -> np.ndarray:
     action = np.zeros(4, np.float32)
     action[:3] = np.clip(10.0 * (aim - grip), -1.0, 1.0)
@@ -121,14 +132,13 @@ def pair_readings(states: list[np.ndarray], every: int, moved: float, space: Fet
     alike."""
     start = states[0]
     block_start = _parts(start)[1]
-    counts = {"reach": {"later": 0, "equal": 0, "earlier": 0, "same_key": 0},
-              "carry": {"later": 0, "equal": 0, "earlier": 0}}
+    counts = _counts()
     for i in range(len(states)):
         for j in range(i + every, len(states)):
             first, second = states[i], states[j]
             _, block1, target = _parts(first)
             block2 = _parts(second)[1]
-            if max(np.linalg.norm(block1 - block_start), np.linalg.norm(block2 - block_start)) <= STILL:
+            if _still(first, block_start) and _still(second, block_start):
                 kind = "reach"
             elif np.linalg.norm(block1 - target) - np.linalg.norm(block2 - target) > moved:
                 kind = "carry"
@@ -146,15 +156,13 @@ def pair_readings(states: list[np.ndarray], every: int, moved: float, space: Fet
 def measure(env_id: str, seeds: list[int], every: int, moved: float) -> dict:
     space, oracle = FetchGoalSpace(), FetchScriptedOracle()
     solved, reach_steps, lengths = [], [], []
-    totals = {"reach": {"later": 0, "equal": 0, "earlier": 0, "same_key": 0},
-              "carry": {"later": 0, "equal": 0, "earlier": 0}}
+    totals = _counts()
     for seed in seeds:
         states, success = episode(env_id, seed)
         if not success:
             continue
         solved.append(seed)
-        block_start = _parts(states[0])[1]
-        still = [np.linalg.norm(_parts(obs)[1] - block_start) <= STILL for obs in states]
+        still = [_still(obs, _parts(states[0])[1]) for obs in states]
         reach_steps.append(int(still.index(False)) if False in still else len(still))
         lengths.append(len(states) - 1)
         for kind, counts in pair_readings(states, every, moved, space, oracle).items():
