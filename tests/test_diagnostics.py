@@ -297,9 +297,10 @@ def test_choice_orders_fit_an_order_per_state_key_only_where_asked() -> None:
 
 
 def test_fetch_oracle_pairs_along_a_scripted_pick_and_place() -> None:
-    """The scripted pick and place solves its episode; along it, every pair of states before the block moves is keyed
-    alike and answered "equal" by the Fetch oracle (it reads only the block's place), and the pairs where the block came
-    nearer the target are answered "the later", none "the earlier"."""
+    """The scripted pick and place solves its episode; along it, the pairs of states before the block moves are
+    answered "the later" where the gripper came to the block in between (the goal space keys them apart by the
+    gripper's flag) and "equal" elsewhere, never "the earlier"; the pairs where the block came nearer the target are
+    answered "the later", none "the earlier". Unbound (keys without the flag) every such pair is "equal"."""
     import pytest
 
     pytest.importorskip("gymnasium_robotics", reason='needs the [fetch] extra: pip install "sb3_hhp[fetch]"')
@@ -312,7 +313,13 @@ def test_fetch_oracle_pairs_along_a_scripted_pick_and_place() -> None:
     states, solved = episode("FetchPickAndPlace-v4", seed=0)
     assert solved and len(states) == 51
     space, oracle = FetchGoalSpace(), FetchScriptedOracle()
+    unbound = pair_readings(states, every=3, moved=0.01, space=space, oracle=oracle)["reach"]
+    assert unbound["equal"] > 0 and unbound["later"] == unbound["earlier"] == unbound["gripper_arrives"] == 0
+    space.bind(gym.make("FetchPickAndPlace-v4"))
     counts = pair_readings(states, every=3, moved=0.01, space=space, oracle=oracle)
     reach, carry = counts["reach"], counts["carry"]
-    assert reach["equal"] > 0 and reach["later"] == reach["earlier"] == 0 and reach["same_key"] >= 0.9 * reach["equal"]
+    assert reach["gripper_arrives"] > 0 and reach["later"] == reach["gripper_arrives_later"] == reach["gripper_arrives"]
+    assert reach["equal"] > 0 and reach["earlier"] == 0
+    assert reach["later"] + reach["equal"] == unbound["equal"]  # the same pairs, those the gripper's arrival splits
+    assert reach["same_key"] <= reach["equal"]  # keyed alike only where the flags agree
     assert carry["later"] > 5 * carry["equal"] and carry["earlier"] == 0

@@ -7,7 +7,7 @@ import pytest
 import torch as th
 
 from sb3_hhp.goals import SUCCESS_KEY, FetchGoalSpace, wrap_env
-from sb3_hhp.hierarchy.goal_conditioned import GoalConditionedLearner, HindsightReplay
+from sb3_hhp.hierarchy.goal_conditioned import GoalConditionedLearner, HindsightReplay, reached_goals
 
 gymnasium_robotics = pytest.importorskip("gymnasium_robotics")
 gym.register_envs(gymnasium_robotics)
@@ -63,6 +63,45 @@ def test_a_termination_short_of_the_goal_costs_one() -> None:
     _, _, _, rewards, dones = replay.relabelled(4)
     np.testing.assert_array_equal(rewards, -1.0)
     assert dones.all()
+
+
+def test_a_goal_with_the_gripper_at_the_object_is_reached_only_with_it_there() -> None:
+    """Goals (x, y, z, flag): reached where the place is within 5 cm and the flag set wherever the goal sets it; a
+    relabelled goal carries the flag the later step had."""
+    replay = HindsightReplay(2, 1, 20, 1, future_p=0.0, distance_threshold=0.05, alpha=0.0, seed=0, goal_dim=4)
+    achieved = [[0.0, 0, 0, 0], [0.01, 0, 0, 1], [0.0, 0, 0, 1], [0.2, 0, 0, 1]]
+    goals = [[0.0, 0, 0, 1], [0.0, 0, 0, 1], [0.0, 0, 0, 0], [0.0, 0, 0, 1]]
+    for t, (reached, goal) in enumerate(zip(achieved, goals)):
+        replay.add(np.zeros((1, 2)), np.zeros((1, 2)), np.zeros((1, 1)), np.array([reached]), np.array([goal]),
+                   np.zeros(1), np.zeros(1, bool), np.array([t == 3]))
+    rows, _, _, rewards, _ = replay.relabelled(200)
+    # step 0: the place but not the gripper; 1: both; 2: a goal without the flag, reached; 3: the flag, not the place
+    np.testing.assert_array_equal(rewards, np.array([0.0, 1.0, 1.0, 0.0])[rows])
+    np.testing.assert_array_equal(reached_goals(np.array(achieved), np.array(goals), 0.05), [False, True, True, False])
+    future = HindsightReplay(2, 1, 20, 1, future_p=1.0, distance_threshold=0.05, alpha=0.0, seed=0, goal_dim=4)
+    future.load_state(replay.state())
+    future.future_p = 1.0
+    _, _, relabelled, _, _ = future.relabelled(200)
+    assert {tuple(goal) for goal in relabelled} <= {tuple(np.float32(v) for v in goal) for goal in achieved}
+    with pytest.raises(ValueError, match="goal_dim must be >= 3"):
+        HindsightReplay(2, 1, 20, 1, future_p=0.0, distance_threshold=0.05, alpha=0.0, goal_dim=2)
+
+
+def test_on_push_the_learner_reads_the_place_and_the_gripper_flag() -> None:
+    env = wrap_env(gym.make("FetchPush-v4"))
+    space = FetchGoalSpace()
+    space.bind(env)
+    learner = GoalConditionedLearner(env.observation_space, env.action_space, space.achieved_goal,
+                                     space.state_part, space.goal_position, space.distance_threshold,
+                                     subpolicy_kwargs=dict(learning_starts=0, policy_kwargs=dict(net_arch=[16])),
+                                     seed=0)
+    assert learner.goal_dim == 4 and learner.input_space["desired_goal"].shape == (4,)
+    obs, _ = env.reset(seed=0)
+    learner.add(space.key(obs)[:3] + (1,))
+    inputs = learner.inputs(obs[None], learner.places(np.array([0]), obs[None]))
+    np.testing.assert_allclose(inputs["desired_goal"][0, 3], 1.0)
+    np.testing.assert_allclose(inputs["achieved_goal"][0], space.achieved_goal(obs[None])[0], rtol=1e-6)
+    assert learner.act(np.array([0]), obs[None], deterministic=True).shape == (1, 4)
 
 
 def test_one_model_serves_every_subgoal() -> None:

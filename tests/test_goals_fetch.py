@@ -89,6 +89,49 @@ def test_similarity_halves_at_the_distance_threshold() -> None:
     np.testing.assert_allclose(space.similarity(SUCCESS_KEY, np.zeros(16), others, np.zeros((6, 16))), [0, 0, 0, 0, 0, 1])
 
 
+def _push_obs(gripper: list, block: list, target: list) -> np.ndarray:
+    """A flat FetchPush observation: the gripper's place, the block's (the achieved position too), zeros, the target."""
+    observation = np.zeros(25)
+    observation[0:3], observation[3:6] = gripper, block
+    return _flat(observation, block, target)
+
+
+def test_on_a_task_with_an_object_keys_say_whether_the_gripper_is_at_it() -> None:
+    space = FetchGoalSpace()
+    assert not space.with_gripper  # unbound (and on Reach): keys of three entries
+    space.bind(wrap_env(gym.make("FetchPush-v4")))
+    assert space.with_gripper and make_goal_space("auto", wrap_env(gym.make("FetchPush-v4"))).with_gripper
+    assert not make_goal_space("auto", wrap_env(gym.make(REACH))).with_gripper
+    assert not FetchGoalSpace(gripper=False).with_gripper
+    block, target = [1.305, 0.705, 0.425], [1.4, 0.8, 0.425]
+    away = _push_obs([1.2, 0.705, 0.425], block, target)  # 10.5 cm from the block
+    near = _push_obs([1.26, 0.705, 0.425], block, target)  # 4.5 cm: at it
+    assert space.key(away) == (130, 70, 42, 0) and space.key(near) == (130, 70, 42, 1)
+    np.testing.assert_allclose(space.achieved_goal(np.stack([away, near])), [block + [0.0], block + [1.0]], rtol=1e-6)
+    np.testing.assert_allclose(space.cell_center((130, 70, 42, 1)), [1.305, 0.705, 0.425])
+    assert space.describe((130, 70, 42, 1)) == "at (130.5, 70.5, 42.5) cm, the gripper at it"
+    assert space.describe((130, 70, 42, 0)) == "at (130.5, 70.5, 42.5) cm, the gripper away"
+    # done(s, g): the place, and the gripper at the object where the sub-goal has it there
+    at_goal, place_goal = (130, 70, 42, 1), (130, 70, 42, 0)
+    assert space.achieved((131, 70, 42, 1), at_goal) and not space.achieved((131, 70, 42, 0), at_goal)
+    assert space.achieved((131, 70, 42, 0), place_goal) and space.achieved((131, 70, 42, 1), place_goal)
+    assert not space.achieved((140, 70, 42, 1), at_goal)  # 10 cm away
+    assert space.choosable(space.key(away), at_goal) and not space.choosable(space.key(near), at_goal)
+    # the learner's goal: the place, then the flag; the task's own goal asks for none
+    np.testing.assert_allclose(space.goal_position(at_goal, away), [1.305, 0.705, 0.425, 1.0])
+    np.testing.assert_allclose(space.goal_position(SUCCESS_KEY, away), target + [0.0], rtol=1e-6)
+    # the discovery gate: a key whose flag differs from every sub-goal's is new, wherever it is
+    similarity = space.similarity(at_goal, near, [place_goal, (135, 70, 42, 1), SUCCESS_KEY], np.zeros((3, 31)))
+    np.testing.assert_allclose(similarity, [0.0, 0.5, 0.0])
+    # what the oracle reads: each sub-goal's flag (none where the sub-goal is the task solved)
+    info = space.query_info(away, near, away)
+    assert info["goal1_gripper_at_object"] is True and info["goal2_gripper_at_object"] is False
+    assert FetchScriptedOracle().answer(Query(state=away, goal1=0, goal2=1, goal1_obs=near, goal2_obs=away,
+                                              info=info)) == Label.FIRST
+    solved = _push_obs(target, target, target)
+    assert space.query_info(away, solved, near)["goal1_gripper_at_object"] is False
+
+
 def test_query_info_feeds_the_scripted_oracle() -> None:
     space = FetchGoalSpace()
     state = _flat(np.zeros(10), [1.3, 0.7, 0.5], [1.4, 0.8, 0.5])

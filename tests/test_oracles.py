@@ -206,6 +206,30 @@ def test_fetch_prefers_closer_sub_goal():
     assert answer.label == Label.FIRST and answer.annotator == "scripted"
 
 
+def test_fetch_counts_the_gripper_at_the_object_two_centimetres_nearer():
+    oracle = FetchScriptedOracle()
+    desired = [1.3, 0.7, 0.42]
+
+    def with_gripper(achieved1, achieved2, at1, at2):
+        query = fetch_query(desired, achieved1, achieved2)
+        query.info.update(goal1_gripper_at_object=at1, goal2_gripper_at_object=at2)
+        return query
+
+    # the same place: the gripper at the object is the better sub-goal, either way round
+    assert oracle.answer(with_gripper([1.4, 0.7, 0.42], [1.4, 0.7, 0.42], False, True)) == Label.SECOND
+    assert oracle.answer(with_gripper([1.4, 0.7, 0.42], [1.4, 0.7, 0.42], True, False)) == Label.FIRST
+    assert oracle.answer(with_gripper([1.4, 0.7, 0.42], [1.4, 0.7, 0.42], True, True)) == Label.EQUAL
+    # 0.10 - 0.02 against 0.085 (the object 1.5 cm nearer, the gripper away): the gripper at the object; against 0.07
+    # (3 cm nearer): the object nearer; without the flags the nearer place as before
+    assert oracle.answer(with_gripper([1.4, 0.7, 0.42], [1.385, 0.7, 0.42], True, False)) == Label.FIRST
+    assert oracle.answer(with_gripper([1.4, 0.7, 0.42], [1.37, 0.7, 0.42], True, False)) == Label.SECOND
+    assert oracle.answer(fetch_query(desired, [1.4, 0.7, 0.42], [1.385, 0.7, 0.42])) == Label.SECOND
+    assert FetchScriptedOracle(gripper_bonus=0.0).answer(
+        with_gripper([1.4, 0.7, 0.42], [1.4, 0.7, 0.42], False, True)) == Label.EQUAL
+    with pytest.raises(ValueError, match="gripper_bonus"):
+        FetchScriptedOracle(gripper_bonus=-0.01)
+
+
 def test_fetch_missing_keys():
     oracle = FetchScriptedOracle()
     query = fetch_query([0, 0, 0], [1, 0, 0], [0, 1, 0])

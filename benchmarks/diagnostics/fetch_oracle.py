@@ -10,8 +10,10 @@ Every pair of states ``every`` steps apart or more of those episodes is asked of
 of the episode's first state and the two states as the sub-goals), split by what happened between them:
 
 - ``reach``: the block had not moved yet in either state (the gripper on its way to it): a person prefers the later,
-  the gripper nearer the block, where the oracle, which reads only the block's place, can only answer "equal"; and
-  the goal space keys both states the same (the block's cell), so no sub-goal can ask for the gripper at the block;
+  the gripper nearer the block. The goal space keys the block's cell and whether the gripper is at the block
+  (within 5 cm): ``same_key`` counts the pairs it keys alike, ``gripper_arrives`` those where the gripper is at the
+  block in the later state only (the oracle should prefer the later: ``gripper_arrives_later``); elsewhere the
+  oracle, which reads the block's place and that flag, can only answer "equal";
 - ``carry``: the block moved nearer the target between the two (by more than ``--moved`` metres): the oracle should
   prefer the later.
 
@@ -45,7 +47,8 @@ def _parts(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _counts() -> dict[str, dict[str, int]]:
     """Empty counts of the oracle's answers by kind of pair (:func:`pair_readings`)."""
-    return {"reach": {"later": 0, "equal": 0, "earlier": 0, "same_key": 0},
+    return {"reach": {"later": 0, "equal": 0, "earlier": 0, "same_key": 0, "gripper_arrives": 0,
+                      "gripper_arrives_later": 0},
             "carry": {"later": 0, "equal": 0, "earlier": 0}}
 
 
@@ -150,11 +153,15 @@ def pair_readings(states: list[np.ndarray], every: int, moved: float, space: Fet
             counts[kind][{Label.SECOND: "later", Label.EQUAL: "equal", Label.FIRST: "earlier"}[label]] += 1
             if kind == "reach":
                 counts["reach"]["same_key"] += int(space.key(first) == space.key(second))
+                if space.gripper_at_object(second) and not space.gripper_at_object(first):
+                    counts["reach"]["gripper_arrives"] += 1
+                    counts["reach"]["gripper_arrives_later"] += int(label == Label.SECOND)
     return counts
 
 
 def measure(env_id: str, seeds: list[int], every: int, moved: float) -> dict:
     space, oracle = FetchGoalSpace(), FetchScriptedOracle()
+    space.bind(gym.make(env_id))  # as HhP binds it: keys with the gripper's flag
     solved, reach_steps, lengths = [], [], []
     totals = _counts()
     for seed in seeds:
@@ -168,7 +175,7 @@ def measure(env_id: str, seeds: list[int], every: int, moved: float) -> dict:
         for kind, counts in pair_readings(states, every, moved, space, oracle).items():
             for name, count in counts.items():
                 totals[kind][name] += count
-    shares = {kind: {name: round(count / max(1, sum(v for k, v in counts.items() if k != "same_key")), 4)
+    shares = {kind: {name: round(count / max(1, sum(counts[k] for k in ("later", "equal", "earlier"))), 4)
                      for name, count in counts.items()} for kind, counts in totals.items()}
     return {"episodes": len(seeds), "solved_seeds": solved, "steps_before_the_block_moves": reach_steps,
             "episode_steps": lengths, "pairs": totals, "shares": shares}

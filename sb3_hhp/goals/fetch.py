@@ -13,7 +13,12 @@ observation and learns which place to go to. ``done(s, g)`` is the paper's (sect
 position is within ``distance_threshold`` (0.05 m) of the sub-goal's, measured between cell centres. The
 discovery gate's similarity falls with that distance d: 1 / (1 + (d / distance_threshold)^2), 1 at the same
 place and 0.5 at the threshold, so with ``b_similarity = 0.5`` no new sub-goal lies within reach of an old
-one. People see the rendered scene when the env renders (``render_mode="rgb_array"``), else a drawing of the
+one. On the tasks with an object (Push, PickAndPlace, Slide) the key also says whether the gripper is at the object
+(within ``distance_threshold`` of it, ``gripper=True``): the object cannot move before the gripper reaches it, and
+that first step of every episode is then a sub-goal of its own, "the object at its place with the gripper at it",
+found where the gripper first comes to the object (design decisions: the gripper at the object). A sub-goal with the
+gripper at the object is reached where the object is within reach of its place and the gripper at the object; one
+without, wherever the gripper is. People see the rendered scene when the env renders (``render_mode="rgb_array"``), else a drawing of the
 achieved position and the target seen from above and from the side. The envs' own camera shows the whole robot,
 the table top a third of the frame wide; :data:`TABLE_CAMERA` looks down at the table top, where the object (a black
 cube) and the target (a red sphere) come out about twice as large across::
@@ -69,23 +74,39 @@ class FetchFlatObs(gym.ObservationWrapper):
         return np.concatenate([np.ravel(observation[name]) for name in FIELDS]).astype(np.float32)
 
 
+def _gripper_at(key: Hashable) -> int:
+    """The flag "the gripper at the object" of a place's key (0 for a key without it: Reach's, or an older one)."""
+    return int(key[3]) if len(key) > 3 else 0
+
+
 class FetchGoalSpace(GoalSpace):
     """Sub-goal key = the ``cell_size`` cube that holds the achieved position (gripper or object), read off
     a :class:`FetchFlatObs` observation; a sub-goal is reached within ``distance_threshold`` of it.
 
     :param cell_size: side of a key's cell in metres (> 0)
     :param distance_threshold: ``done(s, g)`` distance in metres (> 0); the paper's and the Fetch tasks' own 0.05
+    :param gripper: on a task with an object, the key's fourth entry: 1 where the gripper is within
+        ``distance_threshold`` of the object, else 0 (no effect on Reach, whose achieved position is the gripper's)
     """
 
     name = "fetch"
+    #: whether keys carry the "gripper at the object" flag: set by :meth:`bind` on a task with an object (a goal space
+    #: pickled before the flag existed has 3-entry keys)
+    with_gripper: bool = False
 
-    def __init__(self, cell_size: float = 0.01, distance_threshold: float = 0.05) -> None:
+    def __init__(self, cell_size: float = 0.01, distance_threshold: float = 0.05, gripper: bool = True) -> None:
         if not cell_size > 0:
             raise ValueError(f"cell_size must be > 0 metres, got {cell_size}")
         if not distance_threshold > 0:
             raise ValueError(f"distance_threshold must be > 0 metres, got {distance_threshold}")
         self.cell_size = float(cell_size)
         self.distance_threshold = float(distance_threshold)
+        self.gripper = bool(gripper)
+
+    def bind(self, env: gym.Env) -> None:
+        """Keys carry the gripper's flag where the task has an object (its observation then starts with the gripper's
+        position and the object's)."""
+        self.with_gripper = self.gripper and bool(getattr(find_fetch(env), "has_object", False))
 
     @classmethod
     def supports(cls, env: gym.Env) -> bool:
@@ -107,8 +128,25 @@ class FetchGoalSpace(GoalSpace):
         """The episode's target position (metres) of a flat observation, or of a batch ``(B, D)``."""
         return np.asarray(obs, dtype=np.float64)[..., -3:]
 
+    def gripper_at_object(self, obs: np.ndarray) -> np.ndarray:
+        """Whether the gripper is within ``distance_threshold`` of the object (the first two positions of a Fetch
+        observation with an object), for an observation or a batch; False without the flag."""
+        obs = np.asarray(obs, dtype=np.float64)
+        if not self.with_gripper:
+            return np.zeros(obs.shape[:-1], bool)
+        return np.linalg.norm(obs[..., 0:3] - obs[..., 3:6], axis=-1) <= self.distance_threshold
+
+    def achieved_goal(self, obs: np.ndarray) -> np.ndarray:
+        """What the goal-conditioned learner reaches, of a batch ``(B, D)``: the achieved position, then the gripper's
+        flag where keys carry it (``(B, 3)`` or ``(B, 4)``)."""
+        position = self.achieved_position(obs)
+        if not self.with_gripper:
+            return position
+        return np.concatenate([position, self.gripper_at_object(obs)[..., None].astype(np.float64)], axis=-1)
+
     def key(self, obs: np.ndarray) -> Hashable:
-        return tuple(int(v) for v in np.floor(self.achieved_position(obs) / self.cell_size))
+        cell = tuple(int(v) for v in np.floor(self.achieved_position(obs) / self.cell_size))
+        return cell + (int(self.gripper_at_object(obs)),) if self.with_gripper else cell
 
     def solved(self, obs: np.ndarray) -> np.ndarray:
         """Whether the achieved position is within ``distance_threshold`` of the target (the env's ``is_success``),
@@ -128,10 +166,13 @@ class FetchGoalSpace(GoalSpace):
 
     def goal_position(self, key: Optional[Hashable], obs: np.ndarray) -> np.ndarray:
         """The place (metres) a sub-goal asks for in state ``obs``: its cell's centre; the state's target for the
-        task's own goal (:data:`~sb3_hhp.goals.base.SUCCESS_KEY`) or for none (``key`` None)."""
+        task's own goal (:data:`~sb3_hhp.goals.base.SUCCESS_KEY`) or for none (``key`` None). Where keys carry the
+        gripper's flag, the flag follows (the task's own goal asks for none)."""
         if key is None or key == SUCCESS_KEY:
-            return self.desired_position(obs)
-        return self.cell_center(key)
+            place = self.desired_position(obs)
+            return np.append(place, 0.0) if self.with_gripper else place
+        center = self.cell_center(key)
+        return np.append(center, float(_gripper_at(key))) if self.with_gripper else center
 
     @staticmethod
     def state_part(obs: np.ndarray) -> np.ndarray:
@@ -141,24 +182,31 @@ class FetchGoalSpace(GoalSpace):
 
     def cell_center(self, key: Hashable) -> np.ndarray:
         """The centre (metres) of a key's cell."""
-        return (np.asarray(key, dtype=np.float64) + 0.5) * self.cell_size
+        return (np.asarray(key[:3], dtype=np.float64) + 0.5) * self.cell_size
 
     def distance(self, key: Hashable, other: Hashable) -> float:
         """Distance in metres between the centres of two keys' cells (infinite between a place and
-        :data:`~sb3_hhp.goals.base.SUCCESS_KEY`, 0 between two)."""
+        :data:`~sb3_hhp.goals.base.SUCCESS_KEY`, 0 between two); the gripper's flags are not a distance."""
         if key == SUCCESS_KEY or other == SUCCESS_KEY:
             return 0.0 if key == other else math.inf
-        return self.cell_size * math.dist(key, other)  # centres are (key + 0.5) * cell_size: no arrays per step
+        return self.cell_size * math.dist(key[:3], other[:3])  # centres are (key + 0.5) * cell_size: no arrays per step
 
     def achieved(self, key: Hashable, goal_key: Hashable) -> bool:
-        """``done(s, g)``: the achieved position is within ``distance_threshold`` of the sub-goal's."""
-        return self.distance(key, goal_key) <= self.distance_threshold + 1e-9
+        """``done(s, g)``: the achieved position is within ``distance_threshold`` of the sub-goal's, and the gripper
+        at the object where the sub-goal has it there."""
+        if self.distance(key, goal_key) > self.distance_threshold + 1e-9:
+            return False
+        return goal_key == SUCCESS_KEY or _gripper_at(key) >= _gripper_at(goal_key)
 
     def similarity(self, key: Hashable, obs: np.ndarray, goal_keys: Sequence[Hashable], goal_obs: np.ndarray) -> np.ndarray:
         """1 / (1 + (d / distance_threshold)^2), d the distance between the places: 1 at the same place, 0.5 at
-        the threshold."""
+        the threshold; 0 between keys whose gripper's flags differ (the gripper reaching the object is new)."""
         distances = np.array([self.distance(key, other) for other in goal_keys], dtype=np.float64)
-        return 1.0 / (1.0 + (distances / self.distance_threshold) ** 2)
+        similarity = 1.0 / (1.0 + (distances / self.distance_threshold) ** 2)
+        if key != SUCCESS_KEY:
+            flags = [other != SUCCESS_KEY and _gripper_at(other) != _gripper_at(key) for other in goal_keys]
+            similarity[np.array(flags, dtype=bool)] = 0.0
+        return similarity
 
     def query_info(self, state: np.ndarray, goal1_obs: np.ndarray, goal2_obs: np.ndarray) -> dict[str, Any]:
         """What :class:`~sb3_hhp.oracles.fetch.FetchScriptedOracle` reads: the state's target and each
@@ -166,23 +214,28 @@ class FetchGoalSpace(GoalSpace):
         desired = self.desired_position(state)
         # the task's own goal ("task solved", found where a target was reached) is the target of this state
         places = [desired if self.solved(obs) else self.achieved_position(obs) for obs in (goal1_obs, goal2_obs)]
-        return {"desired_goal": desired.tolist(), "goal1_achieved": places[0].tolist(), "goal2_achieved": places[1].tolist()}
+        info = {"desired_goal": desired.tolist(), "goal1_achieved": places[0].tolist(), "goal2_achieved": places[1].tolist()}
+        if self.with_gripper:  # whether each sub-goal has the gripper at the object (the task solved: none asked)
+            for name, obs in (("goal1", goal1_obs), ("goal2", goal2_obs)):
+                info[f"{name}_gripper_at_object"] = bool(self.gripper_at_object(obs)) and not bool(self.solved(obs))
+        return info
 
     def image_of(self, obs: np.ndarray) -> np.ndarray:
         """Two panels, seen from above (x right, y up) and from the side (x right, z up), of the region
-        around the table: the achieved position as a filled blue dot, the target as a red ring."""
+        around the table: the achieved position as a filled blue dot, the target as a red ring, and on a task with
+        an object the gripper as a small black dot."""
+        marks = [(self.desired_position(obs), (220, 40, 40), 4, 1), (self.achieved_position(obs), (40, 80, 220), 4, -1)]
+        if self.with_gripper:
+            marks.append((np.asarray(obs, dtype=np.float64)[0:3], (20, 20, 20), 2, -1))
         panels = []
         for axes in ((0, 1), (0, 2)):
             panel = np.full((PANEL, PANEL, 3), 235, dtype=np.uint8)
             cv2.rectangle(panel, (0, 0), (PANEL - 1, PANEL - 1), (160, 160, 160), 1)
-            for position, colour, thickness in (
-                (self.desired_position(obs), (220, 40, 40), 1),
-                (self.achieved_position(obs), (40, 80, 220), -1),
-            ):
+            for position, colour, radius, thickness in marks:
                 relative = (position[list(axes)] - VIEW_CENTER[list(axes)]) / (2 * VIEW_HALF_WIDTH) + 0.5
                 column = int(np.clip(relative[0], 0, 1) * (PANEL - 1))
                 row = int(np.clip(1.0 - relative[1], 0, 1) * (PANEL - 1))
-                cv2.circle(panel, (column, row), 4, colour, thickness)
+                cv2.circle(panel, (column, row), radius, colour, thickness)
             panels.append(panel)
         return np.concatenate(panels, axis=1)
 
@@ -190,4 +243,7 @@ class FetchGoalSpace(GoalSpace):
         if key == SUCCESS_KEY:
             return "task solved"
         x, y, z = (100 * v for v in self.cell_center(key))
-        return f"at ({x:.1f}, {y:.1f}, {z:.1f}) cm"
+        place = f"at ({x:.1f}, {y:.1f}, {z:.1f}) cm"
+        if len(key) > 3:
+            return place + (", the gripper at it" if _gripper_at(key) else ", the gripper away")
+        return place

@@ -414,7 +414,8 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
                 raise ValueError(f"subgoal_learner_kwargs kind 'goal_conditioned' needs a goal space whose sub-goals are "
                                  f"places (goal_position, state_part: FetchGoalSpace); {type(space).__name__} has none")
             self.subpolicies = GoalConditionedLearner(
-                obs_space, self.primitive_action_space, space.achieved_position, space.state_part, space.goal_position,
+                obs_space, self.primitive_action_space, getattr(space, "achieved_goal", space.achieved_position),
+                space.state_part, space.goal_position,
                 space.distance_threshold, alpha=alpha, subpolicy_kwargs=self.subpolicy_kwargs, n_envs=self.n_envs,
                 device=device, seed=self.seed)
         elif self.subgoal_learner == "per_goal":

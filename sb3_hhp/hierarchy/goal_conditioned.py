@@ -11,7 +11,9 @@ sent to; when a batch is drawn, a share ``future_p`` of the goals is replaced by
 episode (HER's ``future`` strategy, 4 relabelled goals per real one: 0.8), and the reward is eq. 6: the pseudo-reward
 of eq. 5 (``+1`` where ``done(s', g)``, the place within ``distance_threshold``; ``-1`` where the episode terminates
 short of it; ``0`` otherwise) plus ``alpha`` times the curiosity reward of the step. A place can be held, so reaching
-one does not end the learner's return (design decisions: the Fetch sub-goal learner).
+one does not end the learner's return (design decisions: the Fetch sub-goal learner). A goal may carry flags after
+its three coordinates (on the tasks with an object: the gripper at the object, 0 or 1); it is then reached where the
+place is and every flag the goal sets is set, and hindsight relabels the flags with the place.
 """
 
 from collections import deque
@@ -50,20 +52,23 @@ class HindsightReplay:
     :param distance_threshold: ``done(s, g)``: within this distance (metres) of the goal
     :param alpha: weight of the curiosity reward (eq. 6)
     :param seed: the sampler's seed
+    :param goal_dim: length of a goal: 3 coordinates, then flags (>= 3)
     """
 
     def __init__(self, obs_dim: int, action_dim: int, buffer_size: int, n_envs: int, future_p: float,
-                 distance_threshold: float, alpha: float, seed: Optional[int] = None) -> None:
+                 distance_threshold: float, alpha: float, seed: Optional[int] = None, goal_dim: int = 3) -> None:
         if not 0.0 <= future_p <= 1.0:
             raise ValueError(f"future_p must be in [0, 1], got {future_p}")
+        if goal_dim < 3:
+            raise ValueError(f"goal_dim must be >= 3 (x, y, z, then flags), got {goal_dim}")
         self.steps = max(1, buffer_size // n_envs)
         self.n_envs, self.future_p, self.distance_threshold, self.alpha = n_envs, future_p, distance_threshold, alpha
         shape = (self.steps, n_envs)
         self.obs = np.zeros((*shape, obs_dim), np.float32)
         self.next_obs = np.zeros((*shape, obs_dim), np.float32)
         self.actions = np.zeros((*shape, action_dim), np.float32)
-        self.achieved = np.zeros((*shape, 3), np.float32)  # the place reached by the step
-        self.goals = np.zeros((*shape, 3), np.float32)  # the place the learner was sent to
+        self.achieved = np.zeros((*shape, goal_dim), np.float32)  # the place reached by the step (and its flags)
+        self.goals = np.zeros((*shape, goal_dim), np.float32)  # the place the learner was sent to
         self.intrinsic = np.zeros(shape, np.float32)
         self.terminated = np.zeros(shape, bool)
         self.step_id = np.zeros(shape, np.int64)  # the step counter of each row, to find its future
@@ -104,7 +109,7 @@ class HindsightReplay:
             end = np.where(end < 0, self.count - 1, end)  # a running episode: its latest step
             later = start + (self.rng.random(len(start)) * (end - start + 1)).astype(np.int64)
             goals[future] = self.achieved[later % self.steps, envs[future]]
-        reached = np.linalg.norm(self.achieved[rows, envs] - goals, axis=1) <= self.distance_threshold
+        reached = reached_goals(self.achieved[rows, envs], goals, self.distance_threshold)
         terminated = self.terminated[rows, envs]
         rewards = subpolicy_reward(pseudo_reward(reached, reached | terminated), self.intrinsic[rows, envs],
                                    self.alpha)  # eq. 5, 6
@@ -120,6 +125,15 @@ class HindsightReplay:
                              f"{self.obs.shape[:2]}: load it into a model with the same buffer_size and number of envs")
         for name, value in state.items():
             setattr(self, name, value if np.isscalar(value) else np.array(value, copy=True))
+
+
+def reached_goals(achieved: np.ndarray, goals: np.ndarray, distance_threshold: float) -> np.ndarray:
+    """``done(s, g)`` of a batch ``(B, G)``: the place within ``distance_threshold`` and every flag the goal sets
+    (entries after the three coordinates) set where it was reached."""
+    reached = np.linalg.norm(achieved[:, :3] - goals[:, :3], axis=1) <= distance_threshold
+    if goals.shape[1] > 3:
+        reached &= np.all(achieved[:, 3:] >= goals[:, 3:], axis=1)
+    return reached
 
 
 class _Sampler:
@@ -152,9 +166,10 @@ class GoalConditionedLearner:
 
     :param observation_space: the flat primitive observation space
     :param action_space: the primitive (Box) action space
-    :param position: the place of a batch of observations ``(B, D) -> (B, 3)`` (the goal space's achieved position)
+    :param position: the place of a batch of observations ``(B, D) -> (B, G)`` (the goal space's achieved goal: 3
+        coordinates, then its flags)
     :param state: the rest of a batch of observations ``(B, D) -> (B, D')`` the model reads beside the places
-    :param goal_position: the place of a sub-goal key in a state ``(key, obs (D,)) -> (3,)``
+    :param goal_position: the place of a sub-goal key in a state ``(key, obs (D,)) -> (G,)``
     :param distance_threshold: ``done(s, g)`` in metres
     :param alpha: weight of the intrinsic reward in eq. 6
     :param subpolicy_kwargs: the model's SB3 arguments over :data:`DEFAULT_KWARGS` (``algo``, ``future_p`` and
@@ -180,9 +195,12 @@ class GoalConditionedLearner:
         self.distance_threshold, self.alpha, self.seed = float(distance_threshold), float(alpha), seed
         sample = np.zeros((1, *observation_space.shape), np.float32)
         state_dim = self.state(sample).shape[1]
-        self._check_places(self.position(sample), 1, "position (the achieved place of a batch of observations)")
+        achieved = np.asarray(self.position(sample))
+        self.goal_dim = int(achieved.shape[-1]) if achieved.ndim == 2 and achieved.shape[-1] >= 3 else 3
+        self._check_places(achieved, 1, "position (the achieved place of a batch of observations)")
         box = lambda n: spaces.Box(-np.inf, np.inf, (n,), np.float32)  # noqa: E731
-        self.input_space = spaces.Dict(dict(observation=box(state_dim), achieved_goal=box(3), desired_goal=box(3)))
+        self.input_space = spaces.Dict(dict(observation=box(state_dim), achieved_goal=box(self.goal_dim),
+                                            desired_goal=box(self.goal_dim)))
         self.model = ALGOS[algo]("MultiInputPolicy", SpacesEnv(self.input_space, action_space), buffer_size=1,
                                  device=device, seed=seed, **kwargs)
         self.model.set_logger(Logger(folder=None, output_formats=[]))
@@ -202,7 +220,8 @@ class GoalConditionedLearner:
         """A replay laid out for ``n_envs`` envs (empty: rows of another layout are not carried over)."""
         self.n_envs = int(n_envs)
         self.replay = HindsightReplay(self.obs_dim, int(np.prod(self.action_space.shape)), self.buffer_size,
-                                      self.n_envs, self.future_p, self.distance_threshold, self.alpha, self.seed)
+                                      self.n_envs, self.future_p, self.distance_threshold, self.alpha, self.seed,
+                                      goal_dim=self.goal_dim)
 
     def add(self, goal_key: Hashable) -> int:
         """A new sub-goal: nothing to build, the model already reaches any place."""
@@ -221,14 +240,16 @@ class GoalConditionedLearner:
         places = np.stack([self.goal_position(self.goal_keys[int(g)] if g >= 0 else None, o) for g, o in zip(goals, obs)])
         return self._check_places(places, len(obs), "goal_position (the place a sub-goal key asks for)")
 
-    @staticmethod
-    def _check_places(places: np.ndarray, n: int, what: str) -> np.ndarray:
-        """``places`` if it holds ``n`` places of 3 coordinates, else a ValueError naming the goal space's ``what``."""
+    def _check_places(self, places: np.ndarray, n: int, what: str) -> np.ndarray:
+        """``places`` if it holds ``n`` places of ``goal_dim`` entries, else a ValueError naming the goal space's
+        ``what``."""
         places = np.asarray(places)
-        if places.shape != (n, 3):
-            raise ValueError(f"the goal-conditioned learner reads places of 3 coordinates (metres); the goal space's "
-                             f"{what} gave shape {places.shape[1:] if places.ndim else ()} for each of {n} observations "
-                             f"(expected (3,)): make it return an (x, y, z) position, as FetchGoalSpace does")
+        if places.shape != (n, self.goal_dim):
+            flags = f" and {self.goal_dim - 3} flag(s)" if self.goal_dim > 3 else ""
+            raise ValueError(f"the goal-conditioned learner reads places of 3 coordinates (metres){flags}; the goal "
+                             f"space's {what} gave shape {places.shape[1:] if places.ndim else ()} for each of {n} "
+                             f"observations (expected ({self.goal_dim},)): make it return an (x, y, z) position "
+                             f"(then the flags its achieved goal has), as FetchGoalSpace does")
         return places
 
     def act(self, goals: np.ndarray, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
