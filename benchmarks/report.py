@@ -644,7 +644,9 @@ def speed_section(root: Path) -> str:
     return json_section(
         _speed_files(root, "hhp_fps"), "Speed beside SB3's DQN and DDPG + HER",
         "`python benchmarks/speed.py entry --env ENV --start A --stop B --vs-dqn --hhp-kwargs JSON --name NAME` times HhP "
-        "as the env's YAML entry trains it (with the arguments shown over the entry's) and SB3's DQN on the same envs "
+        "as the env's YAML entry trains it (with the arguments shown over the entry's; its questions paced over the "
+        "entry's n_timesteps, as in the run the window is part of, where files measured before "
+        "`montezuma_entry_landmarks.json` paced the whole budget over the B steps) and SB3's DQN on the same envs "
         "(train_freq 4, batch 32) over primitive steps A-B, in one process, one torch thread; `--vs-her` instead of "
         "`--vs-dqn` times SB3's DDPG + HER with the sub-goal learner's settings (the file's `her`). "
         "The baseline's figure is the mean of its window before and after HhP's. The load average is the machine's "

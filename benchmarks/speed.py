@@ -136,10 +136,10 @@ def yaml_entry(env_id: str) -> tuple[str, dict[str, Any]]:
 
 
 def entry_kwargs(env_id: str, overrides: str = "{}") -> tuple[str, dict[str, Any]]:
-    """The YAML entry's HhP keyword arguments (RL Zoo's own keys left out), updated with ``overrides`` (JSON), and
-    the entry's name."""
+    """The YAML entry's HhP keyword arguments (RL Zoo's own keys left out), updated with ``overrides`` (JSON), its
+    questions paced over the entry's run (:func:`paced_as_run`), and the entry's name."""
     name, entry = yaml_entry(env_id)
-    return name, hhp_kwargs(entry, overrides)
+    return name, paced_as_run(entry, hhp_kwargs(entry, overrides))
 
 
 def hhp_kwargs(entry: dict[str, Any], overrides: str = "{}") -> dict[str, Any]:
@@ -152,6 +152,16 @@ def as_trained(kwargs: dict[str, Any], folder: pathlib.Path) -> dict[str, Any]:
     (what the store and the per-choice work cost is measured with it)."""
     folder.mkdir(parents=True, exist_ok=True)
     return {"oracle": "scripted", "preference_db": str(folder / "preferences.sqlite"), **kwargs}
+
+
+def paced_as_run(entry: dict[str, Any], kwargs: dict[str, Any]) -> dict[str, Any]:
+    """``kwargs`` with the questions paced over the entry's ``n_timesteps`` (``query_kwargs["horizon"]``) unless they
+    name a horizon: a window of a few thousand steps then asks what those steps of the real run would ask, not the
+    whole budget (the adaptive pacing spreads it over the ``learn`` call's length)."""
+    query = dict(kwargs.get("query_kwargs") or {})
+    if query.get("horizon") is None and "n_timesteps" in entry:
+        query["horizon"] = int(float(entry["n_timesteps"]))
+    return {**kwargs, "query_kwargs": query}
 
 
 def timed_steps(model: Any, steps: int) -> float:
@@ -227,7 +237,7 @@ def entry_speed(args: argparse.Namespace) -> dict[str, Any]:
     """HhP as the env's YAML entry trains it (its policy, ``env_wrapper`` and ``n_envs`` unless ``--n-envs`` says
     otherwise), timed over steps ``--start`` to ``--stop``, with ``--hhp-kwargs`` over the entry's (e.g. the device)."""
     _, entry = yaml_entry(args.env)
-    kwargs = hhp_kwargs(entry, args.hhp_kwargs)  # the YAML read once
+    kwargs = paced_as_run(entry, hhp_kwargs(entry, args.hhp_kwargs))  # the YAML read once
     wrapper = get_wrapper_class(entry)  # the entry's env_wrapper, as RL Zoo reads it
     n_envs = args.n_envs or entry.get("n_envs", 1)
     policy = entry.get("policy", "MlpPolicy")

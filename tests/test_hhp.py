@@ -382,6 +382,21 @@ def test_with_success_bonus_best_no_question_compares_the_task_solved() -> None:
     assert solved[0] > 0 and solved[1] == 0
 
 
+def test_the_confidences_are_computed_only_where_the_paced_budget_allows_a_question(monkeypatch) -> None:
+    """Adaptive pacing: an episode that ends while the questions are up with the allowance asks nothing, and eq. 4's
+    masks are not run for it; one that may ask runs them."""
+    counts = []
+    for horizon in (10**9, 1_500):  # the budget paced over a billion steps (allowance 0 throughout) or over this run
+        model = make_model(EMPTY, query_budget=40, query_kwargs=dict(mode="adaptive", horizon=horizon))
+        calls, confidence = [], model.predictor.confidence
+        monkeypatch.setattr(model.predictor, "confidence", lambda *a, **k: calls.append(1) or confidence(*a, **k))
+        model.learn(1_500)
+        counts.append((len(calls), model.query_selector.used, model.query_selector.state_dict()["n_calls"]))
+    (idle_calls, idle_used, idle_episodes), (calls, used, _) = counts
+    assert idle_calls == idle_used == 0 and idle_episodes > 10  # every episode counted, none computed
+    assert calls > 0 and used > 0
+
+
 def test_with_second_unasked_the_selector_reads_which_sub_goals_no_question_named(monkeypatch) -> None:
     """``query_kwargs["second"] = "unasked"``: each selection is told the sub-goals no earlier question named, the
     named keys follow the questions asked (and are read back from the store alike); "meta" passes nothing."""

@@ -126,6 +126,20 @@ def test_adaptive_threshold_is_the_window_quantile():
     assert selector.used == 2
 
 
+@pytest.mark.parametrize("mode", ["adaptive", "paced"])
+def test_a_call_with_no_quota_is_idle_and_counted_without_confidences(mode):
+    # budget 10 over 1,000 steps: the allowance grows by one every 100 steps
+    selector = QuerySelector(budget=10, mode=mode, total_timesteps=1_000, threshold=0.0)
+    q_values = np.tile([0.0, 1.0], (2, 1))
+    assert selector.idle(50) and selector.current_threshold == math.inf  # allowance 0
+    assert not selector.idle(100)  # allowance 1: a question may be asked, the confidences are needed
+    assert selector.select(np.array([0.9, 0.1]), np.zeros(2, dtype=int), q_values, num_timesteps=100) == [(0, 1)]
+    assert selector.idle(150)  # caught up with the allowance
+    assert selector.state_dict()["n_calls"] == 3  # idle calls count towards the steps between calls
+    assert len(selector._window) == 2  # only the calls that could ask pooled their confidences
+    assert not QuerySelector(budget=10, threshold=0.5).idle(0)  # the fixed mode asks whenever c > t_qry
+
+
 def test_paced_mode_asks_only_above_t_qry_and_within_the_pace():
     # the same window and quota as above: the adaptive threshold is the median 0.225; t_qry 0.3 lies above it
     q_values = np.tile([0.0, 1.0], (4, 1))

@@ -72,6 +72,8 @@ class BetweenEpisodes:
             oracle.train_on_new()  # updates in proportion to the new triples (design decisions: synthetic oracle)
         if self.query_selector.remaining == 0 or len(self.subgoals) < 2 or None in trace.high_privileged:
             return  # no budget, nothing to compare, or an episode played while no question could be asked
+        if self.query_selector.idle(self.num_timesteps):
+            return  # the questions are up with the paced allowance: no confidence is needed
         # a question is (an equivalent state, an unordered pair of sub-goals): states the predictor reads alike are
         # equivalent, and a question asked before (in this run or one it resumes) is never asked again
         inputs = self.predictor_inputs(states)

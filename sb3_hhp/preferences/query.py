@@ -12,7 +12,9 @@ Three modes:
   At ``num_timesteps`` out of ``total_timesteps`` the allowance is
   ``A = floor(budget * min(1, num_timesteps / total_timesteps))`` and the quota of this call is
   ``k = A - used``. The confidences of askable tuples are pooled in a window of the last
-  ``quantile_window`` values (this episode's included). With ``n`` askable tuples in this episode,
+  ``quantile_window`` values (this episode's included), taken at the calls that may ask (``k > 0``): where
+  ``k = 0`` nothing can be asked, and :meth:`QuerySelector.idle` lets the caller skip the confidences
+  (eq. 4's dropout masks, the costly part of a question). With ``n`` askable tuples in this episode,
   the threshold is the ``1 - min(1, k / n)`` quantile of the window: if recent confidences are
   representative, about ``k`` of this episode's tuples lie above it, so the expected number of
   questions matches the quota. Tuples with ``c >= threshold`` are asked, at most ``k`` of them (the
@@ -125,6 +127,18 @@ class QuerySelector:
             )
         progress = min(1.0, num_timesteps / self.total_timesteps)
         return min(self._budget, math.floor(self._budget * progress + 1e-9))
+
+    def idle(self, num_timesteps: int) -> bool:
+        """Whether a call at ``num_timesteps`` can ask nothing (the adaptive and paced modes with a quota of 0): the
+        call is then counted as :meth:`select` counts it (the steps between calls) and the caller need not compute
+        the episode's confidences; False in the fixed mode and wherever a question may be asked."""
+        if self.mode == "fixed":
+            return False
+        if self.allowance(num_timesteps) - self._used > 0:
+            return False
+        self._n_calls += 1
+        self.current_threshold = math.inf
+        return True
 
     def select(
         self,
