@@ -103,6 +103,7 @@ def test_on_a_task_with_an_object_keys_say_whether_the_gripper_is_at_it() -> Non
     assert space.with_gripper and make_goal_space("auto", wrap_env(gym.make("FetchPush-v4"))).with_gripper
     assert not make_goal_space("auto", wrap_env(gym.make(REACH))).with_gripper
     assert not FetchGoalSpace(gripper=False).with_gripper
+    assert not make_goal_space("fetch_places", wrap_env(gym.make("FetchPush-v4"))).with_gripper
     block, target = [1.305, 0.705, 0.425], [1.4, 0.8, 0.425]
     away = _push_obs([1.2, 0.705, 0.425], block, target)  # 10.5 cm from the block
     near = _push_obs([1.26, 0.705, 0.425], block, target)  # 4.5 cm: at it

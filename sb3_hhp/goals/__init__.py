@@ -22,6 +22,8 @@ NAMED_GOAL_SPACES = {
                                                                       count_blockers=True),
     # Montezuma's Revenge: the paper's detector boxes of its first room, compared with the run's first frame
     "montezuma_landmarks": lambda: ImageGoalSpace(landmarks=MONTEZUMA_LANDMARKS, reference="first"),
+    # Fetch tasks with an object: keys of the object's place alone, without the gripper's flag
+    "fetch_places": lambda: FetchGoalSpace(gripper=False),
 }
 
 
