@@ -323,3 +323,32 @@ def test_fetch_oracle_pairs_along_a_scripted_pick_and_place() -> None:
     assert reach["later"] + reach["equal"] == unbound["equal"]  # the same pairs, those the gripper's arrival splits
     assert reach["same_key"] <= reach["equal"]  # keyed alike only where the flags agree
     assert carry["later"] > 5 * carry["equal"] and carry["earlier"] == 0
+
+
+def test_fetch_contact_counts_the_gripper_at_the_object_and_the_object_moved() -> None:
+    """A scripted pick and place as the model: on every episode it solved the gripper came to the block and moved it;
+    a model that holds still does neither (the block starts away from the gripper) and solves nothing."""
+    import pytest
+
+    pytest.importorskip("gymnasium_robotics", reason='needs the [fetch] extra: pip install "sb3_hhp[fetch]"')
+    from benchmarks.diagnostics.fetch_contact import contact
+    from benchmarks.diagnostics.fetch_oracle import pick_and_place
+    from sb3_hhp.extras import register_fetch_envs
+    from sb3_hhp.goals.fetch import FetchGoalSpace
+
+    register_fetch_envs()
+
+    class Scripted:
+        goal_space = FetchGoalSpace()
+
+        def __init__(self, controller):
+            self.controller = controller
+
+        def predict(self, obs, state=None, episode_start=None, deterministic=False):
+            stage = {} if episode_start[0] else state
+            return self.controller(obs, stage), stage
+
+    played = contact(Scripted(pick_and_place), "FetchPickAndPlace-v4", [0, 1])
+    assert played == {"episodes": 2, "gripper_at_object": 1.0, "object_moved": 1.0, "success": 1.0}
+    still = contact(Scripted(lambda obs, stage: np.zeros(4, np.float32)), "FetchPickAndPlace-v4", [0, 1])
+    assert still == {"episodes": 2, "gripper_at_object": 0.0, "object_moved": 0.0, "success": 0.0}
