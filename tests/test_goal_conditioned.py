@@ -150,6 +150,23 @@ def test_hhp_on_fetch_reach_with_the_goal_conditioned_learner_trains_saves_and_l
         obs, *_ = env.step(action)
 
 
+def test_hhp_on_fetch_push_keys_the_gripper_and_loads_with_it(tmp_path) -> None:
+    """On a task with an object HhP's sub-goals are (place, flag) keys, its learner reads goals of 4 entries, and a
+    saved model loads with the same goal space."""
+    from sb3_hhp import HhP
+
+    model = HhP("MlpPolicy", gym.make("FetchPush-v4"), oracle="scripted", query_budget=4, seed=0, learning_starts=100,
+                predictor_kwargs=dict(n_masks=10),
+                subpolicy_kwargs=dict(learning_starts=64, batch_size=16, policy_kwargs=dict(net_arch=[16])))
+    model.learn(300)
+    assert model.goal_space.with_gripper and model.subpolicies.goal_dim == 4
+    assert model.subgoals and all(len(goal.key) == 4 or goal.key == SUCCESS_KEY for goal in model.subgoals)
+    model.save(tmp_path / "push")
+    loaded = HhP.load(tmp_path / "push", env=gym.make("FetchPush-v4"))
+    assert loaded.goal_space.with_gripper and loaded.subpolicies.goal_dim == 4
+    assert [goal.key for goal in loaded.subgoals] == [goal.key for goal in model.subgoals]
+
+
 def test_a_discrete_kind_on_continuous_actions_is_refused() -> None:
     from sb3_hhp import HhP
 
