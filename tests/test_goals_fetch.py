@@ -104,6 +104,10 @@ def test_on_a_task_with_an_object_keys_say_whether_the_gripper_is_at_it() -> Non
     assert not make_goal_space("auto", wrap_env(gym.make(REACH))).with_gripper
     assert not FetchGoalSpace(gripper=False).with_gripper
     assert not make_goal_space("fetch_places", wrap_env(gym.make("FetchPush-v4"))).with_gripper
+    older = FetchGoalSpace()
+    del older.gripper  # as a goal space pickled before the flag existed: bound again, its keys keep 3 entries
+    older.bind(wrap_env(gym.make("FetchPush-v4")))
+    assert not older.with_gripper and len(older.key(_push_obs([1.2, 0.7, 0.4], [1.3, 0.7, 0.4], [1.4, 0.8, 0.4]))) == 3
     block, target = [1.305, 0.705, 0.425], [1.4, 0.8, 0.425]
     away = _push_obs([1.2, 0.705, 0.425], block, target)  # 10.5 cm from the block
     near = _push_obs([1.26, 0.705, 0.425], block, target)  # 4.5 cm: at it

@@ -90,9 +90,10 @@ class FetchGoalSpace(GoalSpace):
     """
 
     name = "fetch"
-    #: whether keys carry the "gripper at the object" flag: set by :meth:`bind` on a task with an object (a goal space
-    #: pickled before the flag existed has 3-entry keys)
+    #: whether keys carry the "gripper at the object" flag: set by :meth:`bind` on a task with an object; a goal space
+    #: pickled before the flag existed reads these class values, and keeps its 3-entry keys when bound again
     with_gripper: bool = False
+    gripper: bool = False
 
     def __init__(self, cell_size: float = 0.01, distance_threshold: float = 0.05, gripper: bool = True) -> None:
         if not cell_size > 0:
