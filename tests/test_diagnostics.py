@@ -334,13 +334,10 @@ def test_fetch_contact_counts_the_gripper_at_the_object_and_the_object_moved() -
     from benchmarks.diagnostics.fetch_contact import contact
     from benchmarks.diagnostics.fetch_oracle import pick_and_place
     from sb3_hhp.extras import register_fetch_envs
-    from sb3_hhp.goals.fetch import FetchGoalSpace
 
     register_fetch_envs()
 
     class Scripted:
-        goal_space = FetchGoalSpace()
-
         def __init__(self, controller):
             self.controller = controller
 

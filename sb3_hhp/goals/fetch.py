@@ -170,10 +170,10 @@ class FetchGoalSpace(GoalSpace):
         task's own goal (:data:`~sb3_hhp.goals.base.SUCCESS_KEY`) or for none (``key`` None). Where keys carry the
         gripper's flag, the flag follows (the task's own goal asks for none)."""
         if key is None or key == SUCCESS_KEY:
-            place = self.desired_position(obs)
-            return np.append(place, 0.0) if self.with_gripper else place
-        center = self.cell_center(key)
-        return np.append(center, float(_gripper_at(key))) if self.with_gripper else center
+            place, flag = self.desired_position(obs), 0
+        else:
+            place, flag = self.cell_center(key), _gripper_at(key)
+        return np.append(place, float(flag)) if self.with_gripper else place
 
     @staticmethod
     def state_part(obs: np.ndarray) -> np.ndarray:
