@@ -87,6 +87,31 @@ def test_random_discovery_passes_the_same_gates() -> None:
     assert sorted(KEYS[index] for index in chosen) == [key for key in KEYS if key not in ("a", "c")]
 
 
+class RegionSpace(KeyedSpace):
+    """Keys "a" to "e" may become sub-goals, the others lie outside the task's region."""
+
+    def discoverable(self, key) -> bool:
+        return key == SUCCESS_KEY or key in "abcde"
+
+
+def test_only_keys_the_goal_space_lets_in_become_sub_goals() -> None:
+    """The lowest rho ("j", then "b") and the 20 % of the new states: "j" is outside, so "b" is taken; under "new" the
+    percentile ranks the keys that may become sub-goals only; the random strategy and the task solved likewise."""
+    rho = np.array([0.5, -0.8, 0.1, -0.3, 0.2, 0.3, 0.4, 0.6, 0.7, -0.9])
+    visits = Counter({key: 5 for key in KEYS})
+    assert _select(SubgoalDiscovery(KeyedSpace(), percentile=20, seed=0), KEYS, rho, visits) == [9]
+    assert _select(SubgoalDiscovery(RegionSpace(), percentile=20, seed=0), KEYS, rho, visits) == [1]
+    # of the 5 keys let in, percentile 20 ranks one: "b" (-0.8); "d" (-0.3) comes second
+    new = SubgoalDiscovery(RegionSpace(), percentile=20, seed=0, percentile_of="new")
+    assert _select(new, KEYS, rho, visits) == [1]
+    assert _select(new, KEYS, rho, visits, goal_keys=["b"]) == [3]
+    random = SubgoalDiscovery(RegionSpace(), strategy="random", max_new=10, seed=0)
+    assert sorted(KEYS[index] for index in _select(random, KEYS, None, visits)) == list("abcde")
+    solved = ["f", "g", SUCCESS_KEY]
+    assert _select(SubgoalDiscovery(RegionSpace(), percentile=10, seed=0), solved, np.array([-0.5, 0.1, 0.9]),
+                   Counter({**visits, SUCCESS_KEY: 5})) == [2]
+
+
 @pytest.mark.parametrize("kwargs", [dict(strategy="novelty"), dict(percentile=0), dict(min_visits=0),
                                     dict(similarity_threshold=1.5), dict(max_new=0),
                                     dict(percentile_of="all")])

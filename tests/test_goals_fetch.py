@@ -137,6 +137,36 @@ def test_on_a_task_with_an_object_keys_say_whether_the_gripper_is_at_it() -> Non
     assert space.query_info(away, solved, near)["goal1_gripper_at_object"] is False
 
 
+@pytest.mark.parametrize("env_id", ["FetchReach-v4", "FetchPush-v4", "FetchPickAndPlace-v4", "FetchSlide-v4"])
+def test_sub_goals_are_found_within_the_tasks_region(env_id: str) -> None:
+    """Every target the env draws and every place its achieved position starts from may become a sub-goal; a place
+    more than ``distance_threshold`` beyond the farthest of them may not (on the tasks with an object, the object on
+    the floor); the task solved always may; a goal space not bound to an env finds places everywhere."""
+    env = wrap_env(gym.make(env_id))
+    space = make_goal_space("fetch", env)
+    assert FetchGoalSpace().discoverable((0, 0, 0)) and space.discoverable(SUCCESS_KEY)
+    places = []
+    for seed in range(200):
+        obs, _ = env.reset(seed=seed)
+        places += [space.achieved_position(obs), space.desired_position(obs)]
+    places = np.array(places)
+
+    def key(place: np.ndarray) -> tuple:
+        cell = tuple(int(v) for v in np.floor(place / space.cell_size))
+        return cell + (1,) if space.with_gripper else cell
+
+    assert all(space.discoverable(key(place)) for place in places)
+    beyond = space.distance_threshold + 2 * space.cell_size
+    for axis in range(3):
+        for sign, edge in ((-1, places[:, axis].min()), (1, places[:, axis].max())):
+            place = places[0].copy()
+            place[axis] = edge + sign * beyond
+            assert not space.discoverable(key(place)), (axis, sign)
+    if space.with_gripper:
+        assert not space.discoverable(key(np.array([places[0, 0], places[0, 1], 0.025])))  # fallen off the table
+    env.close()
+
+
 def test_query_info_feeds_the_scripted_oracle() -> None:
     space = FetchGoalSpace()
     state = _flat(np.zeros(10), [1.3, 0.7, 0.5], [1.4, 0.8, 0.5])

@@ -3,8 +3,9 @@
 After each episode the visited states are scored by their novelty progress rho(s) (eq. 8, from the
 RND memory Omega). States in the lowest ``percentile`` percent of rho (where novelty fell the most:
 the agent has been learning about them) that were visited at least ``min_visits`` times over all
-training and whose similarity to every stored sub-goal is below ``similarity_threshold``
-(b_similarity) become new sub-goals. ``strategy="random"`` is the paper's ablation (Table 1): a
+training, whose similarity to every stored sub-goal is below ``similarity_threshold`` (b_similarity) and whose
+key the goal space lets become a sub-goal (:meth:`~sb3_hhp.goals.base.GoalSpace.discoverable`: Fetch's places within
+the task's region) become new sub-goals. ``strategy="random"`` is the paper's ablation (Table 1): a
 random visited state passes the same visit and similarity gates. A state where the task was solved
 (:data:`~sb3_hhp.goals.base.SUCCESS_KEY`) is always a candidate: the task's own goal needs no
 curiosity to be worth pursuing. With ``before_success``, so is the state visited just before it (e.g. facing the
@@ -110,7 +111,8 @@ class SubgoalDiscovery:
             if self.percentile_of == "new":  # only the states that could become a new sub-goal
                 existing = set(goal_keys)
                 ranked = np.array([index for index in order
-                                   if keys[index] not in existing and visits[keys[index]] >= self.min_visits],
+                                   if keys[index] not in existing and visits[keys[index]] >= self.min_visits
+                                   and self.goal_space.discoverable(keys[index])],
                                   dtype=np.int64)
             n_candidates = max(1, int(np.ceil(len(ranked) * self.percentile / 100.0)))
             candidates = ranked[:n_candidates]
@@ -127,7 +129,7 @@ class SubgoalDiscovery:
         chosen_obs = list(goal_obs)
         for index in candidates:
             key = keys[index]
-            if visits[key] < self.min_visits:
+            if visits[key] < self.min_visits or not self.goal_space.discoverable(key):
                 continue
             if chosen_keys:
                 similarity = self.goal_space.similarity(key, states[index], chosen_keys, np.stack(chosen_obs))

@@ -51,6 +51,11 @@ class GoalSpace(ABC):
             return SUCCESS_KEY
         return self.key(obs)
 
+    def discoverable(self, key: Hashable) -> bool:
+        """Whether a state of key ``key`` may become a sub-goal (CSD and the random strategy ask before the visit
+        and similarity gates). Default: every key."""
+        return True
+
     def achieved(self, key: Hashable, goal_key: Hashable) -> bool:
         """``done(s, g)``: the state's key equals the sub-goal's key."""
         return key == goal_key

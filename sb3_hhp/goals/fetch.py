@@ -47,6 +47,8 @@ PANEL = 64
 TABLE_CAMERA = {"distance": 1.5, "azimuth": 160.0, "elevation": -50.0, "lookat": np.array([1.30, 0.75, 0.42])}
 #: the parts of a Fetch observation, in the order :class:`FetchFlatObs` concatenates them
 FIELDS = ("observation", "achieved_goal", "desired_goal")
+#: how far above the table a target "in the air" may lie (metres; gymnasium-robotics draws it in [0, 0.45))
+AIR_HEIGHT = 0.45
 
 
 def find_fetch(env: gym.Env) -> Optional[gym.Env]:
@@ -74,6 +76,31 @@ class FetchFlatObs(gym.ObservationWrapper):
         return np.concatenate([np.ravel(observation[name]) for name in FIELDS]).astype(np.float32)
 
 
+def task_region(env: gym.Env) -> Optional[tuple[np.ndarray, np.ndarray]]:
+    """The box (low and high corners, metres) that holds every target the Fetch env under ``env`` can draw and every
+    place its achieved position starts from (the gripper's start on Reach, the object's start region on the others),
+    read off the env's own sampling settings; None where the env does not have them."""
+    base = find_fetch(env)
+    try:
+        center = np.asarray(base.initial_gripper_xpos, dtype=np.float64)[:3]
+        spread = float(base.target_range)
+        offset = np.broadcast_to(np.asarray(base.target_offset, dtype=np.float64), (3,))
+        has_object = bool(base.has_object)
+        height = float(base.height_offset) if has_object else 0.0
+        object_range = float(base.obj_range) if has_object else 0.0
+        in_the_air = bool(base.target_in_the_air)
+    except (AttributeError, TypeError, ValueError):
+        return None
+    low, high = center + offset - spread, center + offset + spread
+    if not has_object:  # Reach: targets in a cube around the gripper's start, which it holds
+        return np.minimum(low, center), np.maximum(high, center)
+    # the object's targets lie on the table top (and up to AIR_HEIGHT above it); it starts on the table near the gripper
+    low[2], high[2] = height, height + (AIR_HEIGHT if in_the_air else 0.0)
+    start_low = np.array([center[0] - object_range, center[1] - object_range, height])
+    start_high = np.array([center[0] + object_range, center[1] + object_range, height])
+    return np.minimum(low, start_low), np.maximum(high, start_high)
+
+
 def _gripper_at(key: Hashable) -> int:
     """The flag "the gripper at the object" of a place's key (0 for a key without it: Reach's, or an older one)."""
     return int(key[3]) if len(key) > 3 else 0
@@ -94,6 +121,9 @@ class FetchGoalSpace(GoalSpace):
     #: pickled before the flag existed reads these class values, and keeps its 3-entry keys when bound again
     with_gripper: bool = False
     gripper: bool = False
+    #: where places may become sub-goals (low and high corners, metres): the task's region (:func:`task_region`) widened
+    #: by ``distance_threshold``, set by :meth:`bind`; None: everywhere
+    region: Optional[tuple[np.ndarray, np.ndarray]] = None
 
     def __init__(self, cell_size: float = 0.01, distance_threshold: float = 0.05, gripper: bool = True) -> None:
         if not cell_size > 0:
@@ -106,8 +136,19 @@ class FetchGoalSpace(GoalSpace):
 
     def bind(self, env: gym.Env) -> None:
         """Keys carry the gripper's flag where the task has an object (its observation then starts with the gripper's
-        position and the object's)."""
+        position and the object's); sub-goals are found within the task's region, widened by ``distance_threshold``."""
         self.with_gripper = self.gripper and bool(getattr(find_fetch(env), "has_object", False))
+        region = task_region(env)
+        self.region = None if region is None else (region[0] - self.distance_threshold, region[1] + self.distance_threshold)
+
+    def discoverable(self, key: Hashable) -> bool:
+        """A place may become a sub-goal within the task's region (:attr:`region`): where the task's targets lie and its
+        object (or the gripper, on Reach) starts. The object pushed off the table, or the gripper far from the table,
+        is new to curiosity but no step towards any target. The task solved always may."""
+        if key == SUCCESS_KEY or self.region is None:
+            return True
+        center = self.cell_center(key)
+        return bool(np.all(center >= self.region[0]) and np.all(center <= self.region[1]))
 
     @classmethod
     def supports(cls, env: gym.Env) -> bool:
