@@ -92,16 +92,30 @@ def _time_unit(seconds: pd.Series) -> tuple[str, float]:
     return "h", 3600.0
 
 
+def subgoal_counts(results: pd.DataFrame, folder: Path) -> pd.Series:
+    """The sub-goals each HhP run had found at its end (``num_subgoals`` of its summary, ``runs/<run>.json``), by
+    row; NaN for the baselines and for runs without a summary."""
+    counts = []
+    for row in results.itertuples():
+        summary = getattr(row, "summary", None)
+        path = folder / summary if isinstance(summary, str) else None
+        data = json.loads(path.read_text()) if path is not None and path.is_file() else {}
+        counts.append(data.get("num_subgoals", np.nan))
+    return pd.Series(counts, index=results.index, dtype=float)
+
+
 def markdown_table(results: pd.DataFrame) -> str:
-    """One row per env x variant: seeds, steps, success (deterministic, stochastic), labels used, wall time.
+    """One row per env x variant: seeds, steps, success (deterministic, stochastic), labels used, sub-goals found
+    (where ``results`` has a ``subgoals`` column with a value: :func:`subgoal_counts`), wall time.
 
     :param results: the rows of ``results.csv``
     :return: the table in Markdown (GitHub's pipe tables)
     """
     unit, scale = _time_unit(results["wall_seconds"])
+    subgoals = "subgoals" in results and results["subgoals"].notna().any()
     header = [
         "env", "variant", "seeds", "steps", "success (deterministic)", "success (stochastic)", "labels used",
-        f"wall time ({unit})",
+        *(["sub-goals"] if subgoals else []), f"wall time ({unit})",
     ]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join([" --- "] * 2 + [" ---: "] * (len(header) - 2)) + "|"]
     for env in sorted(results["env"].unique()):
@@ -117,6 +131,7 @@ def markdown_table(results: pd.DataFrame) -> str:
                 _mean_std(runs["success_det"]),
                 _mean_std(runs["success_stoch"]),
                 _mean_std(runs["labels_used"], digits=0),
+                *([_mean_std(runs["subgoals"], digits=0)] if subgoals else []),
                 _mean_std(runs["wall_seconds"], digits=1 if unit != "s" else 0, scale=scale),
             ]
             lines.append("| " + " | ".join(cells) + " |")
@@ -544,13 +559,16 @@ def sweep_section(folder: Path, root: Path, files: list[tuple[Path, dict]], plot
             lines.append(f"- `python -m benchmarks.run {path.as_posix()} --jobs 2` ({variants})")
     else:
         lines.append("No sweep file of `benchmarks/experiments/` writes into this folder.")
-    lines += ["", f"Trained at: {_commits(results, folder)}.", "", markdown_table(results)]
+    with_subgoals = results.assign(subgoals=subgoal_counts(results, folder))
+    lines += ["", f"Trained at: {_commits(results, folder)}.", "", markdown_table(with_subgoals)]
     episodes = sorted(int(value) for value in results["eval_episodes"].dropna().unique()) if "eval_episodes" in results else []
     lines.append(
         f"Mean ± std over seeds. Success: fraction of {' / '.join(map(str, episodes)) or 'the'} fresh evaluation "
         "episodes (seeds seed + 10000, ...) solved by the deterministic and by the stochastic policy. Labels: "
-        "preference queries answered (HhP only). Wall time: training and evaluation of one run, on the machine and "
-        "under the load it had." + ("\n" + cycles_note.rstrip() if cycles_note else ""))
+        "preference queries answered (HhP only)."
+        + (" Sub-goals: those an HhP run had found at its end." if with_subgoals["subgoals"].notna().any() else "")
+        + " Wall time: training and evaluation of one run, on the machine and under the load it had."
+        + ("\n" + cycles_note.rstrip() if cycles_note else ""))
     if plot:
         plot_curves(results, folder)
     for path in sorted(folder.glob("curves_*.png")):
@@ -631,6 +649,27 @@ def _subgoals_row(path: Path, data: dict) -> list[str]:
             f"{low['replay_mb']:.0f} / {high['replay_mb']:.0f}", f"{data['memory_ratio']:.2f}"]
 
 
+def _contact_row(path: Path, data: dict) -> list[str]:
+    names = [subgoal["name"] for subgoal in data["subgoals"]]
+    return [f"`{path.parent.name}/{path.name}`", data["env"], f"{data['num_timesteps']:,}", str(data["episodes"]),
+            "deterministic" if data["deterministic"] else "stochastic", f"{data['gripper_at_object']:.2f}",
+            f"{data['object_moved']:.2f}", f"{data['success']:.2f}",
+            f"{len(names)} ({sum(name.endswith('the gripper at it') for name in names)})"]
+
+
+def contact_section(root: Path) -> str:
+    """Fresh episodes of saved Fetch models (``benchmarks/diagnostics/fetch_contact.py``'s JSON files beside their
+    sweep's results, ``contact_*.json``)."""
+    return json_section(
+        sorted((root / RESULTS).glob("*/contact_*.json")), "Fetch: the gripper at the object",
+        "`python benchmarks/diagnostics/fetch_contact.py --model RUN/model.zip --env ENV --out FILE`: fresh episodes "
+        "(seeds 10000, 10001, ...) of a saved model's policy; the share where the gripper came within 5 cm of the object, where "
+        "the object moved more than 1 cm, and where the task was solved at the end; the model's sub-goals (with the "
+        "gripper at the object).",
+        ("file", "env", "steps", "episodes", "policy", "gripper at object", "object moved", "solved", "sub-goals"),
+        "llrrlrrrr", _contact_row)
+
+
 def speed_section(root: Path) -> str:
     """HhP's steps per second beside SB3's DQN, and the cost of many sub-goals (``benchmarks/speed.py``'s JSON files
     under ``results/speed``: ``entry --vs-dqn`` and ``subgoals``)."""
@@ -670,6 +709,7 @@ def results_page(root: Path = ROOT, plot: bool = False) -> str:
         "", "## Where each task stands", "", markdown_summary(summary_rows(root)),
     ]
     sections += [sweep_section(folder, root, files.get(folder.name, []), plot) for folder in folders]
+    sections.append(contact_section(root))
     sections.append(hierarchical_env_section(root))
     sections.append(speed_section(root))
     sections.append(calibration_section(root))

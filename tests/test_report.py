@@ -1,10 +1,12 @@
 """Tests of the benchmarks' report (benchmarks/report.py): the results page and the summaries it copies into
 README.md, docs/modules/hhp.rst and benchmarks/README.md are what the results files give, and follow them."""
 
+import json
 import re
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -116,3 +118,38 @@ def test_a_baseline_its_sweep_names_has_its_row_once_it_ran(tmp_path):
     sweep.write_text(sweep.read_text().replace("variants: [hhp, ddpg_her, tqc_her", "variants: [hhp, tqc_her"))
     with pytest.raises(SystemExit, match="has no FetchReach-v4 ddpg_her row: change report.SUMMARY or run that sweep"):
         report.summary_rows(root)
+
+
+def test_a_sweep_table_counts_the_sub_goals_its_hhp_runs_found(tmp_path):
+    """From each HhP run's summary (``num_subgoals``): the mean ± std over seeds; a baseline, or a run without a
+    summary, has none; a table without the counts has no such column."""
+    folder = tmp_path / "sweep"
+    (folder / "runs").mkdir(parents=True)
+    for seed, count in ((0, 10), (1, 14)):
+        (folder / "runs" / f"hhp_s{seed}.json").write_text(json.dumps({"num_subgoals": count}))
+    results = pd.DataFrame({
+        "env": ["E"] * 3, "variant": ["hhp", "hhp", "dqn"], "seed": [0, 1, 0], "steps": [100] * 3,
+        "success_det": [1.0] * 3, "success_stoch": [1.0] * 3, "labels_used": [5, 5, None], "wall_seconds": [60] * 3,
+        "summary": ["runs/hhp_s0.json", "runs/hhp_s1.json", None]})
+    counts = report.subgoal_counts(results, folder)
+    assert counts.iloc[:2].tolist() == [10.0, 14.0] and np.isnan(counts.iloc[2])
+    lines = report.markdown_table(results.assign(subgoals=counts)).splitlines()
+    assert lines[0].split(" | ")[7] == "sub-goals"
+    rows = {line.split(" | ")[1]: line.split(" | ") for line in lines[2:]}
+    assert rows["HhP"][7] == "12 ± 3" and rows["DQN"][7] == "–"
+    assert "sub-goals" not in report.markdown_table(results)
+
+
+def test_the_fetch_contact_files_make_a_table(tmp_path):
+    """Each ``contact_*.json`` beside a sweep's results: its shares, and its sub-goals with the gripper at the object."""
+    folder = tmp_path / report.RESULTS / "fetch_sweep"
+    folder.mkdir(parents=True)
+    assert report.contact_section(tmp_path) == ""
+    data = {"env": "FetchPush-v4", "num_timesteps": 100000, "episodes": 20, "deterministic": False,
+            "gripper_at_object": 0.85, "object_moved": 0.9, "success": 0.1,
+            "subgoals": [{"name": "task solved"}, {"name": "at (1.0, 2.0, 42.5) cm, the gripper at it"},
+                         {"name": "at (5.0, 2.0, 42.5) cm, the gripper away"}]}
+    (folder / "contact_run.json").write_text(json.dumps(data))
+    row = report.contact_section(tmp_path).splitlines()[-1]
+    assert row == ("| `fetch_sweep/contact_run.json` | FetchPush-v4 | 100,000 | 20 | stochastic | 0.85 | 0.90 | 0.10 "
+                   "| 3 (1) |")
