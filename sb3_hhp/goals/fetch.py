@@ -13,7 +13,8 @@ observation and learns which place to go to. ``done(s, g)`` is the paper's (sect
 position is within ``distance_threshold`` (0.05 m) of the sub-goal's, measured between cell centres. The
 discovery gate's similarity falls with that distance d: 1 / (1 + (d / distance_threshold)^2), 1 at the same
 place and 0.5 at the threshold, so with ``b_similarity = 0.5`` no new sub-goal lies within reach of an old
-one. On the tasks with an object (Push, PickAndPlace, Slide) the key also says whether the gripper is at the object
+one. Places become sub-goals only within the task's region (:func:`task_region`, widened by ``distance_threshold``):
+where its targets lie and its achieved position starts, not a block on the floor (design decisions: the task's region). On the tasks with an object (Push, PickAndPlace, Slide) the key also says whether the gripper is at the object
 (within ``distance_threshold`` of it, ``gripper=True``): the object cannot move before the gripper reaches it, and
 that first step of every episode is then a sub-goal of its own, "the object at its place with the gripper at it",
 found where the gripper first comes to the object (design decisions: the gripper at the object). A sub-goal with the
