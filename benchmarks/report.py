@@ -92,15 +92,17 @@ def _time_unit(seconds: pd.Series) -> tuple[str, float]:
     return "h", 3600.0
 
 
+def run_summary(row: NamedTuple, folder: Path) -> Optional[dict]:
+    """A results row's run summary (``runs/<run>.json`` under ``folder``), None where it has none."""
+    summary = getattr(row, "summary", None)
+    path = folder / summary if isinstance(summary, str) else None
+    return json.loads(path.read_text()) if path is not None and path.is_file() else None
+
+
 def subgoal_counts(results: pd.DataFrame, folder: Path) -> pd.Series:
     """The sub-goals each HhP run had found at its end (``num_subgoals`` of its summary, ``runs/<run>.json``), by
     row; NaN for the baselines and for runs without a summary."""
-    counts = []
-    for row in results.itertuples():
-        summary = getattr(row, "summary", None)
-        path = folder / summary if isinstance(summary, str) else None
-        data = json.loads(path.read_text()) if path is not None and path.is_file() else {}
-        counts.append(data.get("num_subgoals", np.nan))
+    counts = [(run_summary(row, folder) or {}).get("num_subgoals", np.nan) for row in results.itertuples()]
     return pd.Series(counts, index=results.index, dtype=float)
 
 
@@ -266,10 +268,8 @@ def greedy_rows(results: pd.DataFrame, folder: Path, key: str = "break_cycles") 
     """
     named = []
     for index, row in zip(results.index, results.itertuples(index=False)):
-        summary = getattr(row, "summary", None)
-        if not str(row.variant).startswith("hhp") or not isinstance(summary, str) or not (folder / summary).is_file():
-            continue
-        if not json.loads((folder / summary).read_text()).get(key, False):
+        summary = run_summary(row, folder) if str(row.variant).startswith("hhp") else None
+        if summary is not None and not summary.get(key, False):
             run = Experiment(row.env, row.variant, int(row.seed), int(row.steps)).name
             named.append((index, f"{row.env} {variant_name(str(row.variant))} seed {int(row.seed)}", run))
     return named
