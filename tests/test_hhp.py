@@ -397,6 +397,27 @@ def test_the_confidences_are_computed_only_where_the_paced_budget_allows_a_quest
     assert calls > 0 and used > 0
 
 
+def test_with_the_pair_reading_a_question_is_chosen_on_the_spread_of_its_own_answer(monkeypatch) -> None:
+    """``query_kwargs["reading"] = "pair"``: the confidences are measured on each tuple's (s, g, g2) with the g2 the
+    question would name, so they lie in [0, 0.5], and questions are asked."""
+    model = make_model(EMPTY, query_budget=40, query_kwargs=dict(reading="pair", mode="fixed", threshold=0.0))
+    measured, confidence = [], model.predictor.confidence
+
+    def spy(states, goals, seconds=None):
+        values = confidence(states, goals, seconds)
+        measured.append((seconds, values))
+        return values
+
+    monkeypatch.setattr(model.predictor, "confidence", spy)
+    model.learn(3_000)
+    assert model.query_selector.used > 0 and measured
+    assert all(seconds is not None for seconds, _ in measured)
+    values = np.concatenate([values for _, values in measured])
+    assert values.min() >= 0.0 and values.max() <= 0.5 and values.max() > 0.0
+    questions = [model.store.get_query(query_id) for query_id in model.store.asked_ids()]
+    assert all(query.goal1 != query.goal2 for query in questions)
+
+
 def test_with_second_unasked_the_selector_reads_which_sub_goals_no_question_named(monkeypatch) -> None:
     """``query_kwargs["second"] = "unasked"``: each selection is told the sub-goals no earlier question named, the
     named keys follow the questions asked (and are read back from the store alike); "meta" passes nothing."""

@@ -34,6 +34,25 @@ def test_second_goal_is_the_meta_controllers_second_choice():
     assert selector.used == 4  # the skipped tuple costs nothing
 
 
+def test_seconds_are_the_sub_goals_select_compares_with():
+    """``seconds`` (what a "pair" reading measures the spread of the answer on) names the g2 that ``select`` asks
+    with, -1 where a tuple has none."""
+    q_values = np.array([[5.0, 1.0, 3.0, 2.0], [5.0, 1.0, 3.0, 2.0], [-np.inf, 4.0, -np.inf, -np.inf]])
+    goals = np.array([0, 1, 1])
+    exclude = np.zeros(q_values.shape, dtype=bool)
+    exclude[0, 2] = True  # asked before: the next best
+    selector = QuerySelector(budget=10, threshold=0.0, reading="pair")
+    seconds = selector.seconds(goals, q_values, exclude=exclude)
+    assert seconds.tolist() == [3, 0, -1]
+    asked = selector.select(np.ones(3), goals, q_values, exclude=exclude)
+    assert asked == [(0, 3), (1, 0)]
+
+
+def test_an_unknown_reading_is_refused():
+    with pytest.raises(ValueError, match="reading must be one of"):
+        QuerySelector(budget=10, reading="answer")
+
+
 def test_budget_zero_asks_nothing():
     for mode in ("fixed", "adaptive"):
         selector = QuerySelector(budget=0, threshold=0.0, mode=mode, total_timesteps=10)

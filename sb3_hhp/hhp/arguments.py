@@ -19,11 +19,12 @@ from sb3_hhp.preferences.predictor import PreferencePredictor
 #: ``query_kwargs``: the query selection (:class:`~sb3_hhp.preferences.query.QuerySelector`): the paper's t_qry
 #: (``threshold``), the pacing ``mode`` ("adaptive", "fixed" or "paced"), the ``horizon`` in primitive steps over
 #: which the adaptive mode paces the budget (None: the ``total_timesteps`` of each ``learn`` call), how the second
-#: sub-goal of a question is chosen (``second``: "meta", the paper's, or "unasked"), whether the state of every
+#: sub-goal of a question is chosen (``second``: "meta", the paper's, or "unasked"), what a confidence measures
+#: (``reading``: "score", eq. 4 as the paper, or "pair": the spread of the question's answer), whether the state of every
 #: choice is rendered for the questions' images (``record_images``; None: when a person answers and the goal space
 #: does not draw a question's state from its facts), and the arguments of the oracle built from a name
 QUERY_DEFAULTS: dict[str, Any] = dict(threshold=0.26, mode="adaptive", horizon=None, quantile_window=2_000,
-                                      second="meta", record_images=None, oracle_kwargs={})
+                                      second="meta", reading="score", record_images=None, oracle_kwargs={})
 #: ``predictor_kwargs``: the preference predictor's (:class:`~sb3_hhp.preferences.predictor.PreferencePredictor`):
 #: MC-dropout masks and dropout probability of eq. 4, its head and spread (design decisions: the predictor head), and
 #: what it reads (``input``: "observation", "features" of the goal space, or "auto": features where there are some)

@@ -82,8 +82,6 @@ class BetweenEpisodes:
         unique = sorted({(state_ids[i], int(goals[i])): i for i in range(len(goals) - 1, -1, -1)}.values())
         states, goals, inputs = states[unique], goals[unique], inputs[unique]
         state_ids = [state_ids[i] for i in unique]
-        confidences = self.predictor.confidence(inputs, self.predictor_inputs(goal_obs[goals]))  # line 25, eq. 4
-        self.last_confidences = confidences
         with th.no_grad():
             q_values = self._q_values(self.policy.obs_to_tensor(states)[0]).cpu().numpy()
         q_values[~np.broadcast_to(self.action_mask(states), q_values.shape)] = -np.inf  # g2 among the choosable sub-goals
@@ -101,6 +99,12 @@ class BetweenEpisodes:
             named = self.asked_goal_keys
             unasked = np.zeros(q_values.shape[1], dtype=bool)  # the meta-controller's room for more sub-goals: invalid
             unasked[: len(keys)] = [key not in named for key in keys]
+        seconds = None
+        if self.query_selector.reading == "pair":  # the spread of the question's answer: g2 first
+            seconds = self.query_selector.seconds(goals, q_values, exclude=exclude, unasked=unasked)
+            seconds = self.predictor_inputs(goal_obs[np.where(seconds >= 0, seconds, goals)])  # no g2: c unused
+        confidences = self.predictor.confidence(inputs, self.predictor_inputs(goal_obs[goals]), seconds)  # line 25
+        self.last_confidences = confidences
         selected = self.query_selector.select(confidences, goals, q_values, num_timesteps=self.num_timesteps,
                                               exclude=exclude, unasked=unasked)
         queries, repeated = [], 0

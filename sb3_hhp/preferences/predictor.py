@@ -7,8 +7,11 @@ dropout layer sits before every weight layer, and the spread of the score over m
 (MC dropout, eq. 4) measures how unsure the predictor is, which decides when to ask (line 26).
 """
 
+import contextlib
 import copy
 import math
+import types
+from collections.abc import Iterator
 from typing import Any, Optional, Union
 
 import gymnasium
@@ -213,6 +216,29 @@ class PreferenceNetwork(nn.Module):
         return scores.reshape(len(state_part), len(goal_part))
 
 
+@contextlib.contextmanager
+def _shared_masks(network: nn.Module, sets: int) -> Iterator[None]:
+    """Inside, every ``Dropout`` of ``network`` draws its masks for the first of ``sets`` equal parts of a batch and
+    applies them to the others too: row ``i`` of each part sees the same mask. ``sets`` 1: dropout as it is."""
+    if sets == 1:
+        yield
+        return
+
+    def shared(module: nn.Dropout, x: torch.Tensor) -> torch.Tensor:
+        part = x.shape[0] // sets
+        mask = F.dropout(torch.ones_like(x[:part]), module.p, training=True)
+        return x * mask.repeat(sets, *[1] * (x.dim() - 1))
+
+    dropouts = [module for module in network.modules() if isinstance(module, nn.Dropout)]
+    for module in dropouts:
+        module.forward = types.MethodType(shared, module)
+    try:
+        yield
+    finally:
+        for module in dropouts:
+            del module.forward
+
+
 #: most inputs whose spread (eq. 4) is kept for the current version of the network
 MAX_CACHED_CONFIDENCES = 100_000
 
@@ -378,7 +404,7 @@ class PreferencePredictor(OwnRandomState):
                       for start in range(0, states_t.shape[0], rows)]
         return torch.cat(scores).cpu().numpy()[inverse]
 
-    def confidence(self, states: np.ndarray, goals: np.ndarray) -> np.ndarray:
+    def confidence(self, states: np.ndarray, goals: np.ndarray, seconds: Optional[np.ndarray] = None) -> np.ndarray:
         """Predictive spread of the score over ``n_masks`` dropout masks (eq. 4); higher = less sure.
 
         ``c(s, g) = E_j [p_hat^{d_j}(s, g) - p]^2`` with ``p = E_j p_hat^{d_j}(s, g)``; with
@@ -387,52 +413,79 @@ class PreferencePredictor(OwnRandomState):
         ``mask_batch_size`` rows. Without dropout (or with a single mask) every mask gives the same
         score, so the spread is 0.
 
+        With ``seconds``, the spread of the question's answer instead: of the Bradley-Terry probability (eq. 2)
+        ``P_j[g > g2] = sigmoid(p_hat^{d_j}(s, g) - p_hat^{d_j}(s, g2))``, each mask ``d_j`` applied to both scores.
+        It lies in [0, 0.5] whatever the scores' scale, and falls as the predictor orders the pair surely (design
+        decisions: the confidence of a question).
+
         :param states: raw states ``(N, *obs_shape)`` (or a single one, paired with every goal)
         :param goals: raw goal observations ``(N, *obs_shape)`` (or a single one)
+        :param seconds: raw observations of the sub-goals each ``goal`` would be compared with, like ``goals``
         :return: confidences, shape (N,)
         """
         states_t, goals_t, n = self._pairs(states, goals)
+        inputs = [states_t, goals_t]
+        if seconds is not None:
+            seconds_t = self._to_tensor(seconds, "seconds")
+            if seconds_t.shape[0] not in (1, goals_t.shape[0]):
+                raise ValueError(f"seconds must have the length of goals ({goals_t.shape[0]}) or 1, got "
+                                 f"{seconds_t.shape[0]}")
+            inputs.append(seconds_t)
         if self.dropout == 0.0 or self.n_masks < 2 or n == 0:
             return np.zeros(n, dtype=np.float32)
-        # equal (state, goal) inputs have one spread: the masks run once on each distinct input, and once per
-        # version of the network (an input met again before the predictor trains keeps the spread it was given)
-        pairs = torch.cat([states_t.expand(n, *states_t.shape[1:]).reshape(n, -1),
-                           goals_t.expand(n, *goals_t.shape[1:]).reshape(n, -1)], dim=1)
-        distinct, inverse = torch.unique(pairs, dim=0, return_inverse=True)
+        # equal inputs have one spread: the masks run once on each distinct input, and once per version of the
+        # network (an input met again before the predictor trains keeps the spread it was given)
+        flat = [x.expand(n, *x.shape[1:]).reshape(n, -1) for x in inputs]
+        distinct, inverse = torch.unique(torch.cat(flat, dim=1), dim=0, return_inverse=True)
         if self._confidence_version != self.version or len(self._confidences) > MAX_CACHED_CONFIDENCES:
             self._confidences, self._confidence_version = {}, self.version
-        keys = [row.tobytes() for row in distinct.cpu().numpy()]
+        keys = [(len(inputs), row.tobytes()) for row in distinct.cpu().numpy()]
         new = [i for i, key in enumerate(keys) if key not in self._confidences]
         if new:
-            rows = distinct[new]
-            n_state = int(np.prod(states_t.shape[1:]))
-            spreads = self._spread(rows[:, :n_state].reshape(len(new), *states_t.shape[1:]),
-                                   rows[:, n_state:].reshape(len(new), *goals_t.shape[1:]), len(new))
+            rows, stops = distinct[new], np.cumsum([0] + [x.shape[1] for x in flat])
+            parts = [rows[:, a:b].reshape(len(new), *x.shape[1:]) for a, b, x in zip(stops[:-1], stops[1:], inputs)]
+            spreads = self._spread(*parts[:2], len(new)) if len(parts) == 2 else self._pair_spread(*parts, len(new))
             self._confidences.update(zip((keys[i] for i in new), spreads))
         return np.array([self._confidences[key] for key in keys], dtype=np.float32)[inverse.cpu().numpy()]
 
     def _spread(self, states_t: torch.Tensor, goals_t: torch.Tensor, n: int) -> np.ndarray:
         """Eq. 4 on tensors of ``n`` inputs (or one state / goal broadcast)."""
-        n_rows = n * self.n_masks
-        predictions = torch.empty(n_rows, device=self.device)
-        self.network.train()
-        try:
-            with torch.no_grad(), self._torch_rng():
-                for start in range(0, n_rows, self.mask_batch_size):
-                    end = min(n_rows, start + self.mask_batch_size)
-                    # row r is mask r % n_masks of input r // n_masks (repeat_interleave, chunk by chunk)
-                    inputs = torch.arange(start, end, device=self.device) // self.n_masks
-                    s = states_t[inputs if states_t.shape[0] > 1 else torch.zeros_like(inputs)]
-                    g = goals_t[inputs if goals_t.shape[0] > 1 else torch.zeros_like(inputs)]
-                    predictions[start:end] = self.network(s, g)
-        finally:
-            self.network.eval()
-        p_dj = predictions.view(n, self.n_masks).double()  # p_hat^{d_j}(s, g)
+        p_dj = self._masked_scores(states_t, [goals_t], n)[0]  # p_hat^{d_j}(s, g)
+        return self._spread_of(p_dj)
+
+    def _pair_spread(self, states_t: torch.Tensor, goals_t: torch.Tensor, seconds_t: torch.Tensor, n: int) -> np.ndarray:
+        """The spread of ``P_j[g > g2]`` over the masks (:meth:`confidence` with ``seconds``)."""
+        first, second = self._masked_scores(states_t, [goals_t, seconds_t], n)
+        return self._spread_of(torch.sigmoid(first - second))
+
+    def _spread_of(self, p_dj: torch.Tensor) -> np.ndarray:
+        """Variance over the masks (axis 1) of ``(n, n_masks)`` readings, or with ``spread="std"`` its square root."""
         p = p_dj.mean(dim=1, keepdim=True)  # predictive posterior mean
         c = ((p_dj - p) ** 2).mean(dim=1)  # eq. 4
         if self.spread == "std":
             c = c.sqrt()  # design decisions: the predictor head
         return c.float().cpu().numpy()
+
+    def _masked_scores(self, states_t: torch.Tensor, goal_sets: list[torch.Tensor], n: int) -> list[torch.Tensor]:
+        """Scores ``(n, n_masks)`` of each state with each of its goals in every set, under ``n_masks`` dropout masks;
+        with several sets, mask ``j`` of input ``i`` is the same for every set's goal (:func:`_shared_masks`)."""
+        n_rows, sets = n * self.n_masks, len(goal_sets)
+        predictions = torch.empty(sets, n_rows, device=self.device)
+        chunk = max(1, self.mask_batch_size // sets)
+        self.network.train()
+        try:
+            with torch.no_grad(), self._torch_rng(), _shared_masks(self.network, sets):
+                for start in range(0, n_rows, chunk):
+                    end = min(n_rows, start + chunk)
+                    # row r is mask r % n_masks of input r // n_masks (repeat_interleave, chunk by chunk)
+                    inputs = torch.arange(start, end, device=self.device) // self.n_masks
+                    s = states_t[inputs if states_t.shape[0] > 1 else torch.zeros_like(inputs)]
+                    g = torch.cat([goals[inputs if goals.shape[0] > 1 else torch.zeros_like(inputs)]
+                                   for goals in goal_sets])
+                    predictions[:, start:end] = self.network(s.repeat(sets, *[1] * (s.dim() - 1)), g).view(sets, -1)
+        finally:
+            self.network.eval()
+        return [p.view(n, self.n_masks).double() for p in predictions]
 
     # ------------------------------------------------------------------ the buffer R
     def add(self, state: np.ndarray, goal1: np.ndarray, goal2: np.ndarray, label: Any) -> bool:

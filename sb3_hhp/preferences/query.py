@@ -41,6 +41,8 @@ import numpy as np
 MODES = ("fixed", "adaptive", "paced")
 #: how the second sub-goal of a question is chosen (:class:`QuerySelector`'s ``second``)
 SECONDS = ("meta", "unasked")
+#: what the confidence of a tuple measures (:class:`QuerySelector`'s ``reading``)
+READINGS = ("score", "pair")
 
 
 class QuerySelector:
@@ -61,6 +63,12 @@ class QuerySelector:
         meta-controller's best choosable sub-goal that no question has named yet, where the state has one; else its
         second choice). A predictor extrapolates its scores to sub-goals no label names, and a sub-goal it scores low
         is seldom the meta-controller's first or second choice, so "meta" may never ask about it
+    :param reading: what the confidences handed to :meth:`select` measure, for the caller to compute: "score" (the
+        paper's eq. 4: the spread of the predictor's score ``p_hat(s, g)``) or "pair" (the spread of the answer to
+        the question itself, ``P[g > g2]`` of eq. 2, with ``g2`` from :meth:`seconds`): a score's spread grows with
+        the scale of the scores as the predictor trains, the answer's lies in [0, 0.5] and falls as the predictor
+        orders the pair surely, so that ``t_qry`` keeps one meaning over a run (design decisions: the confidence of a
+        question)
     """
 
     def __init__(
@@ -71,6 +79,7 @@ class QuerySelector:
         total_timesteps: Optional[int] = None,
         quantile_window: int = 2_000,
         second: str = "meta",
+        reading: str = "score",
     ) -> None:
         if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < 0:
             raise ValueError(f"query_budget must be an integer >= 0, got {budget!r}")
@@ -80,12 +89,15 @@ class QuerySelector:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if second not in SECONDS:
             raise ValueError(f"second must be one of {SECONDS}, got {second!r}")
+        if reading not in READINGS:
+            raise ValueError(f"reading must be one of {READINGS}, got {reading!r}")
         if isinstance(quantile_window, bool) or not isinstance(quantile_window, (int, np.integer)) or quantile_window < 1:
             raise ValueError(f"quantile_window must be an integer >= 1, got {quantile_window!r}")
         self._budget = int(budget)
         self.threshold = float(threshold)
         self.mode = mode
         self.second = second
+        self.reading = reading
         self.quantile_window = int(quantile_window)
         self.total_timesteps: Optional[int] = None
         if total_timesteps is not None:
@@ -188,23 +200,7 @@ class QuerySelector:
         if n == 0:
             return []
 
-        # g2: the meta-controller's second choice, the highest-Q sub-goal other than g
-        others = np.where(np.isnan(q_values), -np.inf, q_values)
-        others[np.arange(n), goals] = -np.inf
-        if exclude is not None:
-            exclude = np.asarray(exclude, dtype=bool)
-            if exclude.shape != q_values.shape:
-                raise ValueError(f"exclude must have the shape of q_values {q_values.shape}, got {exclude.shape}")
-            others[exclude] = -np.inf
-        second = others.argmax(axis=1)
-        if self.second == "unasked" and unasked is not None:
-            unasked = np.asarray(unasked, dtype=bool)
-            if unasked.shape != (n_goals,):
-                raise ValueError(f"unasked must have shape ({n_goals},), one flag a sub-goal, got {unasked.shape}")
-            new = np.where(unasked[None, :], others, -np.inf)
-            has_new = new.max(axis=1) > -np.inf
-            second = np.where(has_new, new.argmax(axis=1), second)
-        askable = np.flatnonzero(others[np.arange(n), second] > -np.inf)
+        second, askable = self._seconds(goals, q_values, exclude, unasked)
         c = confidences[askable]
 
         if self.mode == "fixed":
@@ -235,6 +231,41 @@ class QuerySelector:
             chosen = np.sort(chosen[order[:quota]])
         self._used += len(chosen)
         return [(int(i), int(second[i])) for i in chosen]
+
+    def seconds(self, goals: np.ndarray, q_values: np.ndarray, exclude: Optional[np.ndarray] = None,
+                unasked: Optional[np.ndarray] = None) -> np.ndarray:
+        """The sub-goal ``g2`` that :meth:`select` would compare each tuple's ``g`` with (its arguments as there),
+        -1 where a tuple has no other sub-goal to compare: with ``reading="pair"`` the caller measures the spread of
+        the question's answer before selecting."""
+        goals, q_values = np.asarray(goals), np.asarray(q_values, dtype=np.float64)
+        if q_values.ndim != 2 or goals.shape != (q_values.shape[0],):
+            raise ValueError(f"goals (N,) and q_values (N, G) must agree, got {goals.shape} and {q_values.shape}")
+        second, askable = self._seconds(goals, q_values, exclude, unasked)
+        result = np.full(len(goals), -1, dtype=np.int64)
+        result[askable] = second[askable]
+        return result
+
+    def _seconds(self, goals: np.ndarray, q_values: np.ndarray, exclude: Optional[np.ndarray],
+                 unasked: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """``g2`` of every tuple and the indices of the tuples that have one (:meth:`select`)."""
+        n, n_goals = q_values.shape
+        # g2: the meta-controller's second choice, the highest-Q sub-goal other than g
+        others = np.where(np.isnan(q_values), -np.inf, q_values)
+        others[np.arange(n), goals] = -np.inf
+        if exclude is not None:
+            exclude = np.asarray(exclude, dtype=bool)
+            if exclude.shape != q_values.shape:
+                raise ValueError(f"exclude must have the shape of q_values {q_values.shape}, got {exclude.shape}")
+            others[exclude] = -np.inf
+        second = others.argmax(axis=1)
+        if self.second == "unasked" and unasked is not None:
+            unasked = np.asarray(unasked, dtype=bool)
+            if unasked.shape != (n_goals,):
+                raise ValueError(f"unasked must have shape ({n_goals},), one flag a sub-goal, got {unasked.shape}")
+            new = np.where(unasked[None, :], others, -np.inf)
+            has_new = new.max(axis=1) > -np.inf
+            second = np.where(has_new, new.argmax(axis=1), second)
+        return second, np.flatnonzero(others[np.arange(n), second] > -np.inf)
 
     def refund(self, n: int) -> None:
         """Give back ``n`` questions that :meth:`select` counted but that were not asked."""
