@@ -283,36 +283,41 @@ def test_confidence_chunks_bound_the_rows_and_give_the_same_answer():
 # ---------------------------------------------------------------- the confidence of a question: P[g1 > g2] over masks
 
 
-def test_the_answers_spread_is_eq2_under_each_mask():
-    """With ``seconds``: the spread over masks of sigmoid(p_hat^{d_j}(s, g1) - p_hat^{d_j}(s, g2)), the two scores of
-    mask j read from one call (the first goals' rows, then the seconds')."""
+def test_the_answers_spread_is_that_of_eq2_averaged_over_the_masks():
+    """With ``seconds``: P = the mean over masks of sigmoid(p_hat^{d_j}(s, g1) - p_hat^{d_j}(s, g2)), the two scores
+    of mask j read from one call (the first goals' rows, then the seconds'), and the answer's spread sqrt(P (1 - P))
+    (its variance with spread "var")."""
     n_inputs, n_masks = 3, 6
     noise = np.random.default_rng(0).normal(scale=2.0, size=2 * n_inputs * n_masks)
-    predictor = make_predictor(n_masks=n_masks, mask_batch_size=1_000)
-    predictor.network = QueueNetwork(noise)
     states = np.arange(n_inputs * 4, dtype=np.float32).reshape(n_inputs, 4)  # distinct inputs, in their order
     goals, seconds = np.eye(4, dtype=np.float32)[:n_inputs], np.eye(4, dtype=np.float32)[1 : n_inputs + 1]
-    confidence = predictor.confidence(states, goals, seconds)
-    assert predictor.network.calls == [2 * n_inputs * n_masks]
     first, second = noise[: n_inputs * n_masks], noise[n_inputs * n_masks :]
     answers = 1.0 / (1.0 + np.exp(-(first - second))).reshape(n_inputs, n_masks)  # eq. 2 under each mask
-    expected = np.sqrt(((answers - answers.mean(axis=1, keepdims=True)) ** 2).mean(axis=1))
-    np.testing.assert_allclose(confidence, expected, rtol=1e-4)
+    p = answers.mean(axis=1)
+    for spread, expected in (("std", np.sqrt(p * (1 - p))), ("var", p * (1 - p))):
+        predictor = make_predictor(n_masks=n_masks, mask_batch_size=1_000, spread=spread)
+        predictor.network = QueueNetwork(noise)
+        confidence = predictor.confidence(states, goals, seconds)
+        assert predictor.network.calls == [2 * n_inputs * n_masks]
+        np.testing.assert_allclose(confidence, expected, rtol=1e-4)
+    # the law of total variance: eq. 4 on the answers plus their mean Bernoulli variance
+    np.testing.assert_allclose(p * (1 - p), answers.var(axis=1) + (answers * (1 - answers)).mean(axis=1), rtol=1e-9)
 
 
 def test_a_question_shares_each_mask_between_its_two_sub_goals():
-    """Mask j is the same for g1 and g2: comparing a sub-goal with itself has no spread at all, where two
-    independent masks would give one; a real comparison has one."""
+    """Mask j is the same for g1 and g2: two equal goal sets get equal scores mask by mask (independent masks would
+    not), and a sub-goal compared with itself has the largest spread, 0.5."""
     rng = np.random.default_rng(0)
     predictor = make_predictor(dropout=0.2, n_masks=200)
-    states, goals, seconds = random_obs(rng, 5), random_obs(rng, 5), random_obs(rng, 5)
-    assert np.all(predictor.confidence(states, goals, goals) == 0.0)
-    assert np.all(predictor.confidence(states, goals, seconds) > 0.0)
+    states, goals = torch.as_tensor(random_obs(rng, 5)), torch.as_tensor(random_obs(rng, 5))
+    first, second = predictor._masked_scores(states, [goals, goals], 5)
+    assert torch.equal(first, second) and first.std(dim=1).min() > 0  # dropout is on, one mask for both
+    np.testing.assert_allclose(predictor.confidence(states.numpy(), goals.numpy(), goals.numpy()), 0.5, rtol=1e-6)
 
 
 def test_the_answers_spread_keeps_its_scale_where_the_scores_grow():
-    """Scores 100 times larger spread 100 times more (eq. 4 on p_hat), while the answer's spread stays within
-    [0, 0.5]: a probability's."""
+    """Scores 100 times larger spread 100 times more (eq. 4 on p_hat), while the answer's spread stays a
+    probability's, within [0, 0.5]; scores far apart make it small."""
     rng = np.random.default_rng(0)
     states, goals, seconds = random_obs(rng, 20), random_obs(rng, 20), random_obs(rng, 20)
     spreads = []
@@ -324,7 +329,7 @@ def test_the_answers_spread_keeps_its_scale_where_the_scores_grow():
     (score_1, pair_1), (score_100, pair_100) = spreads
     np.testing.assert_allclose(score_100, 100 * score_1, rtol=1e-3)
     assert np.all(pair_1 <= 0.5) and np.all(pair_100 <= 0.5)
-    assert np.median(pair_100) > np.median(pair_1)  # scores far apart under some masks: their orders disagree more
+    assert np.median(pair_100) < np.median(pair_1)  # the same orders, held more surely
 
 
 def test_seconds_of_the_wrong_length_are_refused():

@@ -413,10 +413,13 @@ class PreferencePredictor(OwnRandomState):
         ``mask_batch_size`` rows. Without dropout (or with a single mask) every mask gives the same
         score, so the spread is 0.
 
-        With ``seconds``, the spread of the question's answer instead: of the Bradley-Terry probability (eq. 2)
-        ``P_j[g > g2] = sigmoid(p_hat^{d_j}(s, g) - p_hat^{d_j}(s, g2))``, each mask ``d_j`` applied to both scores.
-        It lies in [0, 0.5] whatever the scores' scale, and falls as the predictor orders the pair surely (design
-        decisions: the confidence of a question).
+        With ``seconds``, the spread of the question's answer instead. Under mask ``d_j`` the answer "g over g2" has the
+        Bradley-Terry probability (eq. 2) ``P_j = sigmoid(p_hat^{d_j}(s, g) - p_hat^{d_j}(s, g2))``, each mask applied
+        to both scores; over the masks, ``P = E_j P_j``, and the answer (a Bernoulli) has the variance
+        ``P (1 - P) = E_j [P_j - P]^2 + E_j P_j (1 - P_j)``: eq. 4 on the answer plus the answer's own spread under
+        each mask. It lies in [0, 0.25] (``spread="std"``: [0, 0.5]) whatever the scores' scale; it is largest for a
+        predictor that has not learnt to tell the two apart, and falls as it orders them surely (design decisions:
+        the confidence of a question).
 
         :param states: raw states ``(N, *obs_shape)`` (or a single one, paired with every goal)
         :param goals: raw goal observations ``(N, *obs_shape)`` (or a single one)
@@ -451,17 +454,18 @@ class PreferencePredictor(OwnRandomState):
     def _spread(self, states_t: torch.Tensor, goals_t: torch.Tensor, n: int) -> np.ndarray:
         """Eq. 4 on tensors of ``n`` inputs (or one state / goal broadcast)."""
         p_dj = self._masked_scores(states_t, [goals_t], n)[0]  # p_hat^{d_j}(s, g)
-        return self._spread_of(p_dj)
+        p = p_dj.mean(dim=1, keepdim=True)  # predictive posterior mean
+        return self._spread_of(((p_dj - p) ** 2).mean(dim=1))  # eq. 4
 
     def _pair_spread(self, states_t: torch.Tensor, goals_t: torch.Tensor, seconds_t: torch.Tensor, n: int) -> np.ndarray:
-        """The spread of ``P_j[g > g2]`` over the masks (:meth:`confidence` with ``seconds``)."""
+        """The variance of the answer "g over g2", ``P (1 - P)`` with ``P`` the mean over the masks of ``P_j`` (eq. 2
+        under each), or its square root (:meth:`confidence` with ``seconds``)."""
         first, second = self._masked_scores(states_t, [goals_t, seconds_t], n)
-        return self._spread_of(torch.sigmoid(first - second))
+        p = torch.sigmoid(first - second).mean(dim=1)
+        return self._spread_of(p * (1.0 - p))
 
-    def _spread_of(self, p_dj: torch.Tensor) -> np.ndarray:
-        """Variance over the masks (axis 1) of ``(n, n_masks)`` readings, or with ``spread="std"`` its square root."""
-        p = p_dj.mean(dim=1, keepdim=True)  # predictive posterior mean
-        c = ((p_dj - p) ** 2).mean(dim=1)  # eq. 4
+    def _spread_of(self, c: torch.Tensor) -> np.ndarray:
+        """A variance as the predictor's ``spread`` reads it: itself, or with ``spread="std"`` its square root."""
         if self.spread == "std":
             c = c.sqrt()  # design decisions: the predictor head
         return c.float().cpu().numpy()

@@ -64,11 +64,12 @@ class QuerySelector:
         second choice). A predictor extrapolates its scores to sub-goals no label names, and a sub-goal it scores low
         is seldom the meta-controller's first or second choice, so "meta" may never ask about it
     :param reading: what the confidences handed to :meth:`select` measure, for the caller to compute: "score" (the
-        paper's eq. 4: the spread of the predictor's score ``p_hat(s, g)``) or "pair" (the spread of the answer to
-        the question itself, ``P[g > g2]`` of eq. 2, with ``g2`` from :meth:`seconds`): a score's spread grows with
-        the scale of the scores as the predictor trains, the answer's lies in [0, 0.5] and falls as the predictor
-        orders the pair surely, so that ``t_qry`` keeps one meaning over a run (design decisions: the confidence of a
-        question)
+        paper's eq. 4: the spread of the predictor's score ``p_hat(s, g)`` over dropout masks) or "pair" (the spread
+        of the answer to the question itself, "g over g2" with ``P[g > g2]`` of eq. 2 averaged over the masks and
+        ``g2`` from :meth:`seconds`: :meth:`~sb3_hhp.preferences.predictor.PreferencePredictor.confidence` with
+        ``seconds``). A score's spread grows with the scores' scale as the predictor trains; the answer's lies in
+        [0, 0.5], is largest before the predictor can tell the two apart and falls as it orders them surely, so that
+        ``t_qry`` keeps one meaning over a run (design decisions: the confidence of a question)
     """
 
     def __init__(
