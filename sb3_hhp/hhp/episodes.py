@@ -99,11 +99,11 @@ class BetweenEpisodes:
             named = self.asked_goal_keys
             unasked = np.zeros(q_values.shape[1], dtype=bool)  # the meta-controller's room for more sub-goals: invalid
             unasked[: len(keys)] = [key not in named for key in keys]
-        seconds = None
+        second_inputs = None
         if self.query_selector.reading == "pair":  # the spread of the question's answer: g2 first
             seconds = self.query_selector.seconds(goals, q_values, exclude=exclude, unasked=unasked)
-            seconds = self.predictor_inputs(goal_obs[np.where(seconds >= 0, seconds, goals)])  # no g2: c unused
-        confidences = self.predictor.confidence(inputs, self.predictor_inputs(goal_obs[goals]), seconds)  # line 25
+            second_inputs = self.predictor_inputs(goal_obs[np.where(seconds >= 0, seconds, goals)])  # no g2: unasked
+        confidences = self.predictor.confidence(inputs, self.predictor_inputs(goal_obs[goals]), second_inputs)  # l. 25
         self.last_confidences = confidences
         selected = self.query_selector.select(confidences, goals, q_values, num_timesteps=self.num_timesteps,
                                               exclude=exclude, unasked=unasked)
