@@ -119,6 +119,14 @@ def test_the_places_of_set_indicators_are_the_one_hot_inputs_and_a_first_layer_r
             expected_gradient = th.bmm(x.transpose(1, 2), grad)  # (2, size, 5): x.T @ g as rows
             th.testing.assert_close(gradient.view(2, size + 1, 5)[:, :size], 1.0 + expected_gradient, rtol=1e-5, atol=1e-5)
             assert not gradient[starts + size].any()  # the padding's rows stay zero
+            # learners whose rows do not lie evenly spaced (the second first, 3 rows in): added row by row
+            uneven = th.ones((2 * (size + 1) + 3, 5))
+            uneven_starts = th.tensor([size + 4, 0])
+            uneven[uneven_starts + size] = 0.0
+            inputs.add_outer(grad, uneven, uneven_starts)
+            th.testing.assert_close(uneven[size + 4 : 2 * size + 4], 1.0 + expected_gradient[0], rtol=1e-5, atol=1e-5)
+            th.testing.assert_close(uneven[:size], 1.0 + expected_gradient[1], rtol=1e-5, atol=1e-5)
+            assert not uneven[uneven_starts + size].any() and (uneven[size + 1 : size + 4] == 1.0).all()
 
 
 def test_grid_input_chains_the_view_the_overview_and_one_hot_and_says_the_space_it_gives() -> None:

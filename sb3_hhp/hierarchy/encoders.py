@@ -200,14 +200,21 @@ class Indicators:
 
     def add_outer(self, grad: th.Tensor, table: th.Tensor, starts: th.Tensor) -> None:
         """``x[t].T @ grad[t]`` (``grad`` ``(T, N, H)``) added to learner ``t``'s rows of ``table`` (as :meth:`linear`
-        reads them): the gradient of a first layer kept as rows, each set place's row plus its sample's ``grad``; the
-        zero rows stay zero."""
-        places = self.places + starts.view(-1, 1, 1)
-        spread = grad.unsqueeze(2).expand(-1, -1, places.shape[-1], -1)  # each sample's gradient at each of its places
-        padding = table[starts + self.size].clone()
-        table.index_add_(0, places.reshape(-1), spread.reshape(-1, grad.shape[-1]))
-        table[starts + self.size] = padding
-
+        reads them): the gradient of a first layer kept as rows; the zero rows stay zero. The one-hot inputs are
+        written out and multiplied in one batched product, added in place where the learners' rows lie evenly spaced
+        (the stacked learners' gradients), else added row by row: a sparse sum over the set places (``index_add_``)
+        took ~4x as long on KeyCorridorS4R3's learners (~100 set places of 867 inputs, batch 32)."""
+        t, n, width = grad.shape
+        x = th.zeros((t, n, self.size + 1), dtype=grad.dtype, device=grad.device)
+        x.scatter_add_(2, self.places, th.ones((), dtype=grad.dtype, device=grad.device).expand(self.places.shape))
+        product = (x[..., : self.size].transpose(1, 2), grad)  # (T, size, N) @ (T, N, H): the padding's column cut
+        first = int(starts[0]) if t else 0
+        stride = int(starts[1] - starts[0]) if t > 1 else self.size + 1
+        if table.is_contiguous() and stride >= self.size and bool((starts == first + stride * th.arange(t, device=starts.device)).all()):
+            table.as_strided((t, self.size, width), (stride * width, width, 1), table.storage_offset() + first * width).baddbmm_(*product)
+        else:
+            rows = starts.view(-1, 1) + th.arange(self.size, device=starts.device)
+            table.index_add_(0, rows.reshape(-1), th.bmm(*product).reshape(-1, width))
 
 
 class GridInput:

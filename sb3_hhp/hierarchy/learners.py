@@ -371,15 +371,16 @@ class StackedDQN:
         return outputs
 
     def _mlp_backward(self, flat: th.Tensor, outputs: list[th.Tensor], grad_q: th.Tensor,
-                      rows: Optional[slice] = None) -> th.Tensor:
+                      rows: Optional[slice] = None, out: Optional[th.Tensor] = None) -> th.Tensor:
         """The gradient ``(T, P)`` of a loss with respect to the learners' rows (:meth:`_layout`) of a ReLU MLP, from
         the gradient ``grad_q`` ``(T, B, A)`` with respect to its Q-values at the inputs ``rows`` of ``outputs`` (a
         :meth:`_mlp_forward` pass over ``flat``; the first ``B`` by default): backpropagation written out, a few
         batched matrix products; one-hot inputs (:class:`.Indicators`) add each sample's gradient to the rows of its
-        set places."""
+        set places. ``out``: zeros ``(T, P)`` (contiguous) to write it in, else new ones."""
         params = self._unflatten(flat, rest=isinstance(outputs[0], Indicators))
         n = slice(0, grad_q.shape[1]) if rows is None else rows
-        out = th.zeros((len(grad_q), self._row_size), dtype=grad_q.dtype, device=grad_q.device)
+        if out is None:
+            out = th.zeros((len(grad_q), self._row_size), dtype=grad_q.dtype, device=grad_q.device)
         grads = self._unflatten(out)
         grad = grad_q  # with respect to the output of the layer being undone
         for i in range(len(self._layers) - 1, -1, -1):
@@ -690,9 +691,10 @@ class StackedDQN:
         if self._relu_mlp:
             # d loss / d q: the Huber loss's derivative clamp(q - y, -1, 1), weighted, over the batch, at the actions taken
             grad_q = th.zeros_like(q_s).scatter_(-1, actions, ((weights * (q - y).clamp(-1, 1)) / n)[..., None])
-            grads = [self._mlp_backward(params, outputs, grad_q[r * learners : (r + 1) * learners], slice(r * n, (r + 1) * n))
-                     for r in range(reps)]  # each round's gradient from its own rows
-            grad = grads[0] if reps == 1 else th.cat(grads)
+            grad = th.zeros((reps * learners, self._row_size), dtype=grad_q.dtype, device=grad_q.device)
+            for r in range(reps):  # each round's gradient from its own rows, into its own rows of grad
+                self._mlp_backward(params, outputs, grad_q[r * learners : (r + 1) * learners], slice(r * n, (r + 1) * n),
+                                   out=grad[r * learners : (r + 1) * learners])
         else:
             grad = self._row_gradients(loss.sum(), leaves)
         grad = self._clip(grad)  # grad is ours
