@@ -42,8 +42,8 @@ DISCOVERY_DEFAULTS: dict[str, Any] = dict(strategy="csd", subgoals=None, percent
                                           similarity_threshold=0.5, before_success=False, percentile_of="visited")
 #: ``subgoal_learner_kwargs``: how the sub-goal learners learn, beside their SB3 arguments (``subpolicy_kwargs``): the
 #: ``kind`` of the learners (discrete actions: "stacked", a network each, updated in one call, or "heads", one trunk and
-#: a head each; continuous actions: "goal_conditioned", one model for every place, trained with hindsight, or
-#: "per_goal", an SB3 DDPG per sub-goal; None: "stacked" or "goal_conditioned"); own steps over which a learner's epsilon decays, and the run's steps since it was added over which
+#: a head each; continuous actions: "goal_conditioned", one model for every place, trained with hindsight; None:
+#: "stacked" or "goal_conditioned"); own steps over which a learner's epsilon decays, and the run's steps since it was added over which
 #: it decays too (None: own steps only); whether every transition also trains the other sub-goals' learners; whether
 #: they update on every primitive step (None: True for discrete actions); most learners updated in one round; the
 #: learning rounds of one step of the envs in one call; the cells around the agent they read; the one-hot encoding of
@@ -83,7 +83,7 @@ GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
 #: the choices some keys are limited to
 CHOICES: dict[tuple[str, str], tuple] = {
     ("discovery_kwargs", "strategy"): ("csd", "random", "none"),
-    ("subgoal_learner_kwargs", "kind"): (None, "stacked", "heads", "goal_conditioned", "per_goal"),
+    ("subgoal_learner_kwargs", "kind"): (None, "stacked", "heads", "goal_conditioned"),
     ("predictor_kwargs", "input"): ("auto", "features", "observation"),
     ("meta_kwargs", "input"): ("auto", "features", "observation"),
     ("meta_kwargs", "center_bonus"): (True, False, "mean", "max"),

@@ -47,7 +47,6 @@ from sb3_hhp.hierarchy.options import (
     EpisodeTrace, OptionRunner, PrimitiveVecEnv, Subgoal, SubgoalSet, SubgoalVecEnv, check_vec_env, env_view,
 )
 from sb3_hhp.hierarchy.goal_conditioned import GoalConditionedLearner
-from sb3_hhp.hierarchy.subpolicies import PerGoalLearners, SubpolicySet
 from sb3_hhp.oracles.base import Oracle
 from sb3_hhp.oracles.registry import make_oracle
 from sb3_hhp.preferences.predictor import PreferencePredictor
@@ -248,8 +247,8 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         continuous = env is not None and _continuous_actions(env)  # an env id is built to be read: once
         if learner["kind"] is None and env is not None:
             learner["kind"] = "goal_conditioned" if continuous else "stacked"
-        if learner["train_shared"] is None:  # discrete sub-goal learners train on every step; one DDPG model each does not
-            learner["train_shared"] = learner["share_experience"] and not continuous
+        if learner["train_shared"] is None:  # discrete sub-goal learners train on every step (the goal-conditioned one
+            learner["train_shared"] = learner["share_experience"] and not continuous  # learns every step of its own)
         subgoals = self.discovery_kwargs.pop("subgoals")
         self.initial_subgoals = [np.asarray(goal) for goal in subgoals] if subgoals else []
         self.oracle_spec = oracle
@@ -392,7 +391,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         if discrete != (self.subgoal_learner in SUBGOAL_LEARNERS):
             raise ValueError(f"subgoal_learner_kwargs kind {self.subgoal_learner!r} does not suit "
                              f"{self.primitive_action_space}: discrete actions take 'stacked' or 'heads', continuous "
-                             "ones 'goal_conditioned' or 'per_goal'")
+                             "ones 'goal_conditioned'")
         if discrete:
             self.subpolicies = SUBGOAL_LEARNERS[self.subgoal_learner](
                 obs_space, self.primitive_action_space, self.goal_space.achieved, policy=self.subpolicy_policy,
@@ -408,7 +407,6 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
                     raise ValueError(f"subgoal_learner_kwargs['{name}'] applies to the learners of discrete actions; this "
                                      f"env's sub-goal learners are continuous-action models that read the whole "
                                      f"observation as it is: leave {name} out")
-        if self.subgoal_learner == "goal_conditioned":
             space = self.goal_space
             if not hasattr(space, "goal_position"):
                 raise ValueError(f"subgoal_learner_kwargs kind 'goal_conditioned' needs a goal space whose sub-goals are "
@@ -418,14 +416,6 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
                 space.state_part, space.goal_position,
                 space.distance_threshold, alpha=alpha, subpolicy_kwargs=self.subpolicy_kwargs, n_envs=self.n_envs,
                 device=device, seed=self.seed)
-        elif self.subgoal_learner == "per_goal":
-            self.subpolicies = PerGoalLearners(
-                SubpolicySet(obs_space, self.primitive_action_space, policy=self.subpolicy_policy,
-                             subpolicy_kwargs=self.subpolicy_kwargs, exploration_steps=learner["exploration_steps"],
-                             device=device, seed=self.seed),
-                self.goal_space.achieved, alpha=alpha, share_experience=learner["share_experience"],
-                train_shared=learner["train_shared"],
-            )
         self.discovery = SubgoalDiscovery(
             self.goal_space, strategy="random" if self.discovery_strategy == "random" else "csd", seed=self.seed,
             **{key: value for key, value in self.discovery_kwargs.items() if key != "strategy"},

@@ -22,14 +22,29 @@ from typing import Any, Optional
 
 import numpy as np
 import torch as th
+import gymnasium as gym
 from gymnasium import spaces
 from stable_baselines3 import DDPG, SAC, TD3
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.type_aliases import DictReplayBufferSamples
 
 from sb3_hhp.hierarchy.rewards import pseudo_reward, subpolicy_reward
-from sb3_hhp.hierarchy.subpolicies import SpacesEnv
 from sb3_hhp.hierarchy.learner_kwargs import check_learners_state
+
+class SpacesEnv(gym.Env):
+    """A stand-in env that only carries spaces, so an SB3 model can be built without a real env (the learner steps
+    it by hand)."""
+
+    def __init__(self, observation_space: spaces.Space, action_space: spaces.Space) -> None:
+        self.observation_space = observation_space
+        self.action_space = action_space
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):  # pragma: no cover - never stepped
+        raise RuntimeError("SpacesEnv only carries spaces; the goal-conditioned learner steps its model by hand")
+
+    def step(self, action):  # pragma: no cover - never stepped
+        raise RuntimeError("SpacesEnv only carries spaces; the goal-conditioned learner steps its model by hand")
+
 
 #: the off-policy algorithms the learner may be
 ALGOS = {"sac": SAC, "td3": TD3, "ddpg": DDPG}

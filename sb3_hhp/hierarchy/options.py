@@ -171,7 +171,8 @@ class OptionRunner:
     :param goal_space: the domain's goal space
     :param subgoals: the sub-goal set G (the model's, read here)
     :param learners: the sub-goal learners (:class:`~sb3_hhp.hierarchy.learners.StackedDQN`,
-        :class:`~sb3_hhp.hierarchy.heads.SharedHeadsDQN` or :class:`~sb3_hhp.hierarchy.subpolicies.PerGoalLearners`)
+        :class:`~sb3_hhp.hierarchy.heads.SharedHeadsDQN` or
+        :class:`~sb3_hhp.hierarchy.goal_conditioned.GoalConditionedLearner`)
     :param rnd: the global curiosity model (None: no curiosity, the "Pref" ablation)
     :param max_subgoal_steps: primitive steps after which a sub-goal gives up
     :param record_images: render s_t at each choice (people and the gallery need it)
