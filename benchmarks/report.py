@@ -162,6 +162,51 @@ def mean_curve(curves: Sequence[pd.DataFrame], column: str = "success") -> Optio
     return pd.DataFrame({"steps": grid, "mean": values.mean(axis=0), "std": values.std(axis=0, ddof=1)})
 
 
+#: the baseline whose final success the other variants' periodic evaluations are timed against, and the most that
+#: level may be (the Fetch target "faster than HER": DDPG + HER's final success or 0.5, whichever is lower)
+REACH_BASELINE, REACH_CAP = "ddpg_her", 0.5
+
+
+def first_reach(curve: pd.DataFrame, level: float) -> Optional[float]:
+    """The first step of a run's periodic evaluations (``steps``, ``success``) whose success is at least ``level``;
+    None where none is."""
+    reached = curve.sort_values("steps").loc[lambda frame: frame["success"] >= level - 1e-9, "steps"]
+    return float(reached.iloc[0]) if len(reached) else None
+
+
+def steps_to_level(results: pd.DataFrame, folder: Path, baseline: str = REACH_BASELINE,
+                   cap: float = REACH_CAP) -> Optional[str]:
+    """For each env where ``baseline`` finished: the level min(its mean final deterministic success, ``cap``), and for
+    each variant the steps at which each seed's periodic evaluations (``curves/<run>.csv``) first reach it, mean ±
+    std over the seeds that did (how many of how many). None without such an env.
+
+    :return: the table in Markdown
+    """
+    if "curve" not in results or baseline not in set(results["variant"]):
+        return None
+    lines = ["| env | level | variant | steps to the level | seeds that reached it |",
+             "| --- | ---: | --- | ---: | ---: |"]
+    for env in sorted(results["env"].unique()):
+        rows = results[results["env"] == env]
+        final = rows.loc[rows["variant"] == baseline, "success_det"]
+        level = min(float(final.mean()), cap) if len(final) else 0.0
+        if level <= 0.0:
+            continue  # the baseline solved nothing: no level to time
+        for variant in _variant_order(list(rows["variant"].unique())):
+            runs = rows[(rows["variant"] == variant) & rows["curve"].notna()]
+            steps = [first_reach(pd.read_csv(folder / path), level) for path in runs["curve"]
+                     if (folder / path).is_file()]
+            if not steps:
+                continue
+            reached = pd.Series([value for value in steps if value is not None], dtype=float)
+            mean = "–" if reached.empty else f"{reached.mean():,.0f}"
+            if len(reached) > 1:
+                mean += f" ± {reached.std(ddof=1):,.0f}"
+            cells = [env, f"{level:.2f}", variant_name(variant), mean, f"{len(reached)} of {len(steps)}"]
+            lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n" if len(lines) > 2 else None
+
+
 def unfinished_runs(results: pd.DataFrame, folder: Path) -> pd.DataFrame:
     """The runs with a log folder (``logs/<run>``) and no row in ``results``: still training, or stopped. The newest
     periodic evaluations under each log folder (every part of a resumed run) become ``curves/<run>.partial.csv``; a
@@ -569,6 +614,11 @@ def sweep_section(folder: Path, root: Path, files: list[tuple[Path, dict]], plot
         + (" Sub-goals: those an HhP run had found at its end." if with_subgoals["subgoals"].notna().any() else "")
         + " Wall time: training and evaluation of one run, on the machine and under the load it had."
         + ("\n" + cycles_note.rstrip() if cycles_note else ""))
+    timed = steps_to_level(results, folder)
+    if timed:
+        lines += ["", f"Steps to {variant_name(REACH_BASELINE)}'s final success (the mean over its seeds, deterministic) or "
+                  f"{REACH_CAP}, whichever is lower: the first periodic evaluation of each seed at that level (a run "
+                  "that never reached it is left out of the mean).", "", timed.rstrip()]
     if plot:
         plot_curves(results, folder)
     for path in sorted(folder.glob("curves_*.png")):

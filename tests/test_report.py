@@ -153,3 +153,34 @@ def test_the_fetch_contact_files_make_a_table(tmp_path):
     row = report.contact_section(tmp_path).splitlines()[-1]
     assert row == ("| `fetch_sweep/contact_run.json` | FetchPush-v4 | 100,000 | 20 | stochastic | 0.85 | 0.90 | 0.10 "
                    "| 3 (1) |")
+
+
+def test_steps_to_the_baselines_level_time_each_seeds_periodic_evaluations(tmp_path):
+    """The level is min(DDPG + HER's mean final deterministic success, 0.5); each seed's first periodic evaluation at
+    or above it, mean ± std over the seeds that reached it; an env whose baseline solved nothing has no row."""
+    folder = tmp_path / "sweep"
+    (folder / "curves").mkdir(parents=True)
+    curves = {  # run -> success at 10k, 20k, 30k, 40k
+        "her_s0": [0.1, 0.3, 0.4, 0.4], "her_s1": [0.0, 0.2, 0.3, 0.3],  # final 0.4 and 0.3: the level is 0.35
+        "hhp_s0": [0.35, 0.0, 0.9, 1.0], "hhp_s1": [0.0, 0.0, 0.36, 1.0], "hhp_s2": [0.0, 0.1, 0.2, 0.3],
+        "low_her": [0.0, 0.0, 0.0, 0.0], "low_hhp": [0.0, 0.5, 1.0, 1.0],
+    }
+    for run, success in curves.items():
+        pd.DataFrame({"steps": [10_000, 20_000, 30_000, 40_000], "success": success}).to_csv(
+            folder / "curves" / f"{run}.csv", index=False)
+    rows = [("E", "ddpg_her", 0, 0.4, "her_s0"), ("E", "ddpg_her", 1, 0.3, "her_s1"), ("E", "hhp", 0, 1.0, "hhp_s0"),
+            ("E", "hhp", 1, 1.0, "hhp_s1"), ("E", "hhp", 2, 0.3, "hhp_s2"), ("F", "ddpg_her", 0, 0.0, "low_her"),
+            ("F", "hhp", 0, 1.0, "low_hhp")]
+    results = pd.DataFrame([dict(env=env, variant=variant, seed=seed, steps=40_000, success_det=final, success_stoch=final,
+                                 labels_used=None, wall_seconds=60, curve=f"curves/{run}.csv")
+                            for env, variant, seed, final, run in rows])
+    assert report.first_reach(pd.read_csv(folder / "curves" / "hhp_s1.csv"), 0.35) == 30_000
+    assert report.first_reach(pd.read_csv(folder / "curves" / "hhp_s2.csv"), 0.35) is None
+    table = report.steps_to_level(results, folder).splitlines()
+    cells = {line.split(" | ")[2]: line.strip("| ").split(" | ") for line in table[2:]}
+    assert set(cells) == {"DDPG + HER", "HhP"} and all(line.startswith("| E | 0.35 |") for line in table[2:])
+    assert cells["DDPG + HER"][3:] == ["30,000", "1 of 2"]  # its second seed never reached its own mean
+    assert cells["HhP"][3:] == ["20,000 ± 14,142", "2 of 3"]  # 10k (at the level exactly) and 30k
+    only_f = results[results["env"] == "F"]
+    assert report.steps_to_level(only_f, folder) is None  # DDPG + HER solved nothing there
+    assert report.steps_to_level(results[results["variant"] == "hhp"], folder) is None  # no baseline
