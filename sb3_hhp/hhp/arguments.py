@@ -43,12 +43,12 @@ DISCOVERY_DEFAULTS: dict[str, Any] = dict(strategy="csd", subgoals=None, percent
 #: ``subgoal_learner_kwargs``: how the sub-goal learners learn, beside their SB3 arguments (``subpolicy_kwargs``): the
 #: ``kind`` of the learners (discrete actions: "stacked", a network each, updated in one call, or "heads", one trunk and
 #: a head each; continuous actions: "goal_conditioned", one model for every place, trained with hindsight; None:
-#: "stacked" or "goal_conditioned"); own steps over which a learner's epsilon decays, and the run's steps since it was added over which
-#: it decays too (None: own steps only); whether every transition also trains the other sub-goals' learners; whether
-#: they update on every primitive step (None: True for discrete actions); most learners updated in one round; the
-#: learning rounds of one step of the envs in one call; the cells around the agent they read; the one-hot encoding of
-#: each channel; the coarse overview of the observation (these three may be "auto": :data:`LEARNER_INPUTS`); the range
-#: their TD targets are clipped to
+#: "stacked" or "goal_conditioned"); own steps over which a learner's epsilon decays, and the run's steps since it was
+#: added over which it decays too (None: own steps only); whether every transition also trains the other sub-goals'
+#: learners; whether they update on every primitive step (None: True for discrete actions); most learners updated in one
+#: round; the learning rounds of one step of the envs in one call; the cells around the agent they read; the one-hot
+#: encoding of each channel; the coarse overview of the observation (these three may be "auto": :data:`LEARNER_INPUTS`);
+#: the range their TD targets are clipped to
 SUBGOAL_LEARNER_DEFAULTS: dict[str, Any] = dict(kind=None, exploration_steps=5_000, exploration_run_steps=None,
                                                 share_experience=True, train_shared=None, max_updates=8,
                                                 grouped_rounds=False, view=None, carry_relabel=0.0, one_hot=None,

@@ -247,8 +247,9 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         continuous = env is not None and _continuous_actions(env)  # an env id is built to be read: once
         if learner["kind"] is None and env is not None:
             learner["kind"] = "goal_conditioned" if continuous else "stacked"
-        if learner["train_shared"] is None:  # discrete sub-goal learners train on every step (the goal-conditioned one
-            learner["train_shared"] = learner["share_experience"] and not continuous  # learns every step of its own)
+        # discrete sub-goal learners train on every step (the goal-conditioned learner updates at every step anyway)
+        if learner["train_shared"] is None:
+            learner["train_shared"] = learner["share_experience"] and not continuous
         subgoals = self.discovery_kwargs.pop("subgoals")
         self.initial_subgoals = [np.asarray(goal) for goal in subgoals] if subgoals else []
         self.oracle_spec = oracle

@@ -210,8 +210,10 @@ class Indicators:
         product = (x[..., : self.size].transpose(1, 2), grad)  # (T, size, N) @ (T, N, H): the padding's column cut
         first = int(starts[0]) if t else 0
         stride = int(starts[1] - starts[0]) if t > 1 else self.size + 1
-        if table.is_contiguous() and stride >= self.size and bool((starts == first + stride * th.arange(t, device=starts.device)).all()):
-            table.as_strided((t, self.size, width), (stride * width, width, 1), table.storage_offset() + first * width).baddbmm_(*product)
+        even = bool((starts == first + stride * th.arange(t, device=starts.device)).all())
+        if table.is_contiguous() and stride >= self.size and even:  # the learners' rows as one strided view
+            offset = table.storage_offset() + first * width
+            table.as_strided((t, self.size, width), (stride * width, width, 1), offset).baddbmm_(*product)
         else:
             rows = starts.view(-1, 1) + th.arange(self.size, device=starts.device)
             table.index_add_(0, rows.reshape(-1), th.bmm(*product).reshape(-1, width))
