@@ -73,14 +73,16 @@ def read_results(csv_path: Path) -> pd.DataFrame:
     return results
 
 
-def _mean_std(values: pd.Series, digits: int = 2, scale: float = 1.0) -> str:
-    """``mean ± std`` (sample std over seeds; the mean alone for one seed; "–" when there is no value)."""
+def _mean_std(values: pd.Series, digits: int = 2, scale: float = 1.0, thousands: bool = False) -> str:
+    """``mean ± std`` (sample std over seeds; the mean alone for one seed; "–" when there is no value);
+    ``thousands``: with a comma between thousands (steps)."""
     values = values.dropna().astype(float) / scale
+    spec = f"{',' if thousands else ''}.{digits}f"
     if values.empty:
         return "–"
     if len(values) == 1:
-        return f"{values.iloc[0]:.{digits}f}"
-    return f"{values.mean():.{digits}f} ± {values.std(ddof=1):.{digits}f}"
+        return f"{values.iloc[0]:{spec}}"
+    return f"{values.mean():{spec}} ± {values.std(ddof=1):{spec}}"
 
 
 def _time_unit(seconds: pd.Series) -> tuple[str, float]:
@@ -199,10 +201,8 @@ def steps_to_level(results: pd.DataFrame, folder: Path, baseline: str = REACH_BA
             if not steps:
                 continue
             reached = pd.Series([value for value in steps if value is not None], dtype=float)
-            mean = "–" if reached.empty else f"{reached.mean():,.0f}"
-            if len(reached) > 1:
-                mean += f" ± {reached.std(ddof=1):,.0f}"
-            cells = [env, f"{level:.2f}", variant_name(variant), mean, f"{len(reached)} of {len(steps)}"]
+            cells = [env, f"{level:.2f}", variant_name(variant), _mean_std(reached, digits=0, thousands=True),
+                     f"{len(reached)} of {len(steps)}"]
             lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n" if len(lines) > 2 else None
 

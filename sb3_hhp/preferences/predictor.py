@@ -419,7 +419,7 @@ class PreferencePredictor(OwnRandomState):
         ``P (1 - P) = E_j [P_j - P]^2 + E_j P_j (1 - P_j)``: eq. 4 on the answer plus the answer's own spread under
         each mask. It lies in [0, 0.25] (``spread="std"``: [0, 0.5]) whatever the scores' scale; it is largest for a
         predictor that has not learnt to tell the two apart, and falls as it orders them surely (design decisions:
-        the confidence of a question).
+        Fetch asks where the answer to the question is unsure).
 
         :param states: raw states ``(N, *obs_shape)`` (or a single one, paired with every goal)
         :param goals: raw goal observations ``(N, *obs_shape)`` (or a single one)

@@ -69,7 +69,7 @@ class QuerySelector:
         ``g2`` from :meth:`seconds`: :meth:`~sb3_hhp.preferences.predictor.PreferencePredictor.confidence` with
         ``seconds``). A score's spread grows with the scores' scale as the predictor trains; the answer's lies in
         [0, 0.5], is largest before the predictor can tell the two apart and falls as it orders them surely, so that
-        ``t_qry`` keeps one meaning over a run (design decisions: the confidence of a question)
+        ``t_qry`` keeps one meaning over a run (design decisions: Fetch asks where the answer to the question is unsure)
     """
 
     def __init__(
