@@ -455,20 +455,22 @@ class Task(NamedTuple):
 
 #: the method of a task's :attr:`Task.former` row
 FORMER = "HhP, the task's former own entry"
+#: the ``minigrid`` entry before its sub-goal learners took the class's reward and horizon (alpha 0.5, discount 0.9,
+#: 50-step tries) in place of alpha 0 with clipped TD targets, discount 0.99 and 100-step tries (minigrid_entry.yml)
+CLIPPED = Source("minigrid_entry", "hhp_clipped_learners")
 #: where each task stands: HhP as ``sb3_hhp/hyperparams/hhp.yml`` trains it on that env, and the flat baselines
 SUMMARY = (
     Task("MiniGrid-DoorKey-8x8-v0", Source("minigrid_entry", "hhp"),
-         (Source("doorkey8x8", "dqn"), Source("doorkey8x8", "ppo"), Source("doorkey8x8", "ppo_rnd")),
+         (CLIPPED, Source("doorkey8x8", "dqn"), Source("doorkey8x8", "ppo"), Source("doorkey8x8", "ppo_rnd")),
          former=Source("doorkey8x8_entry", "hhp")),
     Task("MiniGrid-KeyCorridorS4R3-v0", Source("minigrid_entry", "hhp"),
-         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")),
+         (CLIPPED, Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")),
          former=Source("minigrid_tasks", "hhp_one_hot_new_open")),
     Task("MiniGrid-MultiRoom-N12-S10-v0", Source("minigrid_entry", "hhp"),
-         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")),
+         (CLIPPED, Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")),
          former=Source("minigrid_tasks", "hhp_rerun")),
-    # the minigrid entry's settings are those this variant added to the task's former entry, which are the same
-    Task("MiniGrid-DoorKey-16x16-v0", Source("minigrid_tasks", "hhp_overview_target_range"),
-         (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd"))),
+    Task("MiniGrid-DoorKey-16x16-v0", Source("minigrid_entry", "hhp"),
+         (CLIPPED, Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd"))),
     Task("MiniGrid-ObstructedMaze-1Q-v1", Source("minigrid_entry", "hhp"),
          (Source("minigrid_tasks", "ppo"), Source("minigrid_tasks", "ppo_rnd")),
          former=Source("minigrid_tasks", "hhp")),
@@ -511,7 +513,7 @@ def summary_rows(root: Path = ROOT) -> list[list[str]]:
             rows.append([task.env, "HhP", "–", "–", "–", task.note, task.note, "–", "–"])
             continue
         sources = [(task.hhp, "HhP")] + ([(task.former, FORMER)] if task.former is not None else [])
-        sources += [(source, VARIANT_NAMES.get(source.variant, "HhP")) for source in task.baselines]
+        sources += [(source, variant_name(source.variant)) for source in task.baselines]
         for index, (source, method) in enumerate(sources):
             if source.sweep not in cache:
                 folder = root / RESULTS / source.sweep

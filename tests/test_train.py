@@ -340,7 +340,9 @@ def test_the_papers_four_minigrid_tasks_take_the_one_minigrid_entry(env_id: str)
     assert model.goal_space.keep_doors_open and model.success_bonus == "best"
     assert model.goal_space.use_color == (env_id == "MiniGrid-ObstructedMaze-1Q-v1")  # two keys of different colours
     assert model.discovery.percentile_of == "new"
-    assert model.alpha == 0.0 and learners.target_range == (-1.0, 1.0)  # eq. 5's returns alone
+    # the learners' reward and horizon are the class's: curiosity in their reward, unclipped, discount 0.9, 50-step tries
+    assert model.alpha == 0.5 and learners.target_range is None
+    assert model.max_subgoal_steps == 50 and learners.gamma == 0.9
     if env_id == "MiniGrid-MultiRoom-N12-S10-v0":
         base = model.env.envs[0].unwrapped
         assert (base.minNumRooms, base.maxNumRooms, base.maxRoomSize, base.width) == (12, 12, 10, 25)
