@@ -4,6 +4,7 @@ scripted oracle's plan and preferences (sb3_hhp.goals.minigrid, sb3_hhp.oracles.
 from types import SimpleNamespace
 
 import gymnasium as gym
+from gymnasium import spaces
 import minigrid  # noqa: F401  (registers the MiniGrid envs)
 import numpy as np
 import pytest
@@ -13,8 +14,9 @@ from minigrid.core.world_object import Ball, Key, Wall
 
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
 from sb3_hhp.goals.minigrid import encode_grid, grid_codes
+from sb3_hhp.hierarchy.encoders import GridInput
 from sb3_hhp.goals.minigrid import (BLOCKS, GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, N_OBJECTS, N_STATES, NO_GOAL_SQUARE,
-                                    OPEN_DOORS)
+                                    OPEN_DOORS, RELATIVE, SAME_COLOR)
 from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query, scripted
 from sb3_hhp.oracles.registry import make_oracle
 from sb3_hhp.oracles.scripted import plan_keys, plan_steps
@@ -784,8 +786,11 @@ def test_keep_doors_open_masks_the_toggle_that_would_close_the_door_in_front() -
     other = obs.copy()
     other[0, 3, 2, 1] = 3  # the same open door in front, another colour
     assert named.key(obs[0]) != named.key(other[0])
-    # minigrid_open_doors reads colours only where the task's grids hold keys of several colours
+    # minigrid_open_doors reads colours only where the task's grids hold keys of several colours, and then as they
+    # relate to the carried object's: with empty hands the door's colour does not matter, with a key in hand it does
     colored = make_goal_space("minigrid_open_doors", env)
+    assert colored.relative_color and colored.key(obs[0]) == colored.key(other[0])
+    obs[0, 3, 3] = other[0, 3, 3] = (KEY, 1, 0)  # a green key in hand: the door in front green, or purple
     assert colored.key(obs[0]) != colored.key(other[0])
     env.close()
     doorkey = wrap_env(gym.make("MiniGrid-DoorKey-8x8-v0"))
@@ -1039,7 +1044,8 @@ def test_grid_codes_are_what_the_tasks_grids_hold(env_id: str, types: list, stat
     space = MiniGridGoalSpace(use_color="auto")
     assert space.use_color is False  # until bound
     space.bind(base)
-    assert space.use_color is (key_colors > 1)
+    assert space.use_color is space.relative_color is (key_colors > 1)
+    assert space.color_option == ("relative" if key_colors > 1 else False)
 
 
 @pytest.mark.parametrize("env_id, view, overview", [
@@ -1053,5 +1059,90 @@ def test_learner_input_is_derived_from_the_bound_env(env_id: str, view, overview
     assert derived == dict(view=view, overview=overview, one_hot=[[2, 4, 5, 8], [], [1, 2]])
     with pytest.raises(ValueError, match="bind the goal space"):
         MiniGridGoalSpace().learner_input(env.observation_space)
-    with pytest.raises(ValueError, match="use_color must be True, False or 'auto'"):
+    with pytest.raises(ValueError, match="use_color must be True, False, 'relative'"):
         MiniGridGoalSpace(use_color="yes")
+
+
+def _holding(carried: tuple, front: tuple, size: int = 7) -> np.ndarray:
+    """An egocentric observation: empty cells in walls, the agent carrying ``carried``, ``front`` in front of it."""
+    obs = np.zeros((size, size, 3), dtype=np.uint8)
+    obs[1:-1, 1:-1] = (EMPTY, 0, 0)
+    obs[0, :], obs[-1, :], obs[:, 0], obs[:, -1] = (WALL, 5, 0), (WALL, 5, 0), (WALL, 5, 0), (WALL, 5, 0)
+    center = size // 2
+    obs[center, center], obs[center, center - 1] = carried, front
+    return obs
+
+
+def test_relative_colours_name_a_key_and_the_door_it_opens_whatever_their_colour() -> None:
+    """With use_color "relative" a key holds whether the object in front has the carried object's colour, not which
+    colour either has: ObstructedMaze draws its doors' colours anew in every layout, so "carrying the key, facing the
+    door it opens" is one sub-goal in every layout, and another than facing a door the key does not open. present,
+    features, choosable, describe and the scripted oracle read colours the same way."""
+    space = MiniGridGoalSpace(use_color="relative")
+    assert space.use_color and space.relative_color and space.color_option == "relative"
+    red, green, purple, grey = (COLOR_TO_IDX[name] for name in ("red", "green", "purple", "grey"))
+    ball, box = OBJECT_TO_IDX["ball"], OBJECT_TO_IDX["box"]
+    opens = _holding((KEY, green, 0), (DOOR, green, LOCKED))
+    opens_too = _holding((KEY, purple, 0), (DOOR, purple, LOCKED))  # another layout's colours
+    other_door = _holding((KEY, green, 0), (DOOR, purple, LOCKED))
+    assert space.key(opens) == space.key(opens_too) == (KEY, RELATIVE, DOOR, SAME_COLOR, LOCKED)
+    assert space.key(other_door) == (KEY, RELATIVE, DOOR, 0, LOCKED)
+    absolute = MiniGridGoalSpace(use_color=True)
+    assert len({absolute.key(obs) for obs in (opens, opens_too, other_door)}) == 3
+    # empty hands: no colour to relate to; walls, empty cells and goal squares relate to none (a grey key, a red one)
+    assert space.key(_holding((EMPTY, 0, 0), (DOOR, green, LOCKED))) == (EMPTY, RELATIVE, DOOR, 0, LOCKED)
+    assert space.key(_holding((KEY, grey, 0), (WALL, grey, 0)))[3] == 0
+    assert space.key(_holding((KEY, red, 0), (EMPTY, red, 0)))[3] == 0
+    assert space.describe(space.key(opens)) == "carrying key, facing locked door of its colour"
+    assert space.describe(space.key(other_door)) == "carrying key, facing locked door"
+    # present: the door the key opens, as the key names it; features: the relation, the same in both layouts
+    door_of_the_key = (DOOR, SAME_COLOR, LOCKED)
+    beside = _holding((KEY, green, 0), (EMPTY, 0, 0))
+    beside[1, 2] = (DOOR, green, LOCKED)  # a door within reach, of the key's colour
+    assert door_of_the_key in space.present(beside)
+    carrying_key = space.key(beside)
+    assert carrying_key == (KEY, RELATIVE, EMPTY, 0, 0)
+    assert space.choosable(carrying_key, (KEY, RELATIVE, DOOR, SAME_COLOR, LOCKED), space.present(beside))
+    beside[1, 2] = (DOOR, purple, LOCKED)
+    assert door_of_the_key not in space.present(beside) and (DOOR, 0, LOCKED) in space.present(beside)
+    assert not space.choosable(carrying_key, (KEY, RELATIVE, DOOR, SAME_COLOR, LOCKED), space.present(beside))
+    np.testing.assert_array_equal(space.features(opens), space.features(opens_too))
+    assert not np.array_equal(space.features(opens), space.features(other_door))
+    assert space.features(opens).shape[1] == MiniGridGoalSpace().features(opens).shape[1] + 2
+    np.testing.assert_array_equal(opens[3, 3], (KEY, green, 0))  # the observation is left as it was
+    # a pick-up and a drop move one object between the hands and the cell in front: its colour relation changes
+    facing_ball, holding_ball = (EMPTY, RELATIVE, ball, 0, 0), (ball, RELATIVE, EMPTY, 0, 0)
+    assert space.choosable(facing_ball, holding_ball) and space.choosable(holding_ball, facing_ball)
+    assert not space.choosable(facing_ball, (KEY, RELATIVE, EMPTY, 0, 0))  # the ball in front is not a key
+    assert not space.choosable(holding_ball, (EMPTY, RELATIVE, box, 0, 0))  # it drops the ball it carries
+    # the sub-goal learners read the relation too, where the door the key opens is (one_hot "auto" lists it)
+    codes = space.learner_codes()
+    assert codes is not None and MiniGridGoalSpace(use_color=True).learner_codes() is None
+    read = GridInput(spaces.Box(0, 10, opens.shape, np.uint8), one_hot=[list(range(11)), [SAME_COLOR], [0, 1, 2]],
+                     codes=codes)
+    np.testing.assert_array_equal(read.encode(opens), read.encode(opens_too))
+    assert not np.array_equal(read.encode(opens), read.encode(other_door))
+    assert read.encode(opens)[3, 2].sum() == 3 and read.encode(other_door)[3, 2].sum() == 2  # door, same colour, locked
+    # the scripted oracle keys its plans the same way (make_oracle passes the goal space's colour option)
+    assert make_oracle("scripted", space, spaces.Box(0, 10, opens.shape, np.uint8)).goal_space.relative_color
+
+
+def test_relative_colours_give_obstructedmaze_the_few_situations_of_its_plans() -> None:
+    """On ObstructedMaze-1Q (the doors' colours drawn per layout) the scripted oracle's plans pass through fewer keys
+    with colours related than named, and every plan walks to the door with the key that opens it."""
+    env = wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1"))
+    space = make_goal_space("minigrid_open_doors", env)
+    assert space.relative_color
+    related_oracle = make_oracle("scripted", space, env.observation_space, max_seconds=60.0)  # under load too
+    named_oracle = MiniGridScriptedOracle(use_color=True, max_seconds=60.0)
+    related, named = set(), set()
+    for seed in (0, 2, 4, 5):
+        env.reset(seed=seed)
+        state = space.privileged(env)
+        plan = [key for key, _ in related_oracle.plan(state)]
+        assert (KEY, RELATIVE, DOOR, SAME_COLOR, LOCKED) in plan and (KEY, RELATIVE, DOOR, 0, LOCKED) not in plan
+        assert plan[-1] == SUCCESS_KEY
+        related.update(plan)
+        named.update(key for key, _ in named_oracle.plan(state))
+    assert len(related) < len(named)
+    env.close()

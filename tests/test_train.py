@@ -313,7 +313,8 @@ def test_hhp_is_registered_with_rl_zoo() -> None:
 DERIVED_INPUTS = {
     "MiniGrid-DoorKey-16x16-v0": (15, (7, 7, 3), 4 + 2),  # walls, doors, keys, goal squares; closed, locked
     "MiniGrid-KeyCorridorS4R3-v0": (None, None, 4 + 2),  # the 15 x 15 inner canvas; walls, doors, keys, balls
-    "MiniGrid-ObstructedMaze-1Q-v1": (15, (7, 7, 3), 5 + 2),  # boxes too, and the keys they hold
+    # boxes too, and the keys they hold; whether a cell has the carried object's colour (keys of two colours)
+    "MiniGrid-ObstructedMaze-1Q-v1": (15, (7, 7, 3), 5 + 1 + 2),
     "MiniGrid-MultiRoom-N12-S10-v0": (15, (11, 11, 3), 3 + 1),  # walls, doors, goal squares; closed only
 }
 
@@ -338,7 +339,9 @@ def test_the_papers_four_minigrid_tasks_take_the_one_minigrid_entry(env_id: str)
     cells = side * side + (overview[0] * overview[1] if overview else 0)
     assert learners._template.q_net[0].in_features == cells * indicators
     assert model.goal_space.keep_doors_open and model.success_bonus == "best"
-    assert model.goal_space.use_color == (env_id == "MiniGrid-ObstructedMaze-1Q-v1")  # two keys of different colours
+    # two keys of different colours: colours read as they relate (a key and the door it opens)
+    assert model.goal_space.use_color == model.goal_space.relative_color == (env_id == "MiniGrid-ObstructedMaze-1Q-v1")
+    assert (learners.input.codes is not None) == model.goal_space.relative_color  # the learners read the relation
     assert model.discovery.percentile_of == "new"
     # the learners' reward and horizon are the class's: curiosity in their reward, unclipped, discount 0.9, 50-step tries
     assert model.alpha == 0.5 and learners.target_range is None

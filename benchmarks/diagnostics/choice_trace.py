@@ -51,8 +51,8 @@ def target_distance(env: gym.Env, goal_space: Any, goal_key: Any) -> Optional[in
     faces nothing to interact with, another goal space, or no such object in the grid."""
     if not isinstance(goal_space, MiniGridGoalSpace) or not isinstance(goal_key, tuple) or goal_key == SUCCESS_KEY:
         return None
-    if goal_space.use_color:
-        front, colour, state = goal_key[2], goal_key[3], goal_key[4]
+    if goal_space.use_color:  # a colour relation (use_color "relative") names no colour
+        front, colour, state = goal_key[2], (None if goal_space.relative_color else goal_key[3]), goal_key[4]
     else:
         front, colour, state = goal_key[1], None, goal_key[2]
     if front not in INTERACTIVE:

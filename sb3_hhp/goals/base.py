@@ -7,7 +7,7 @@ image that a person is shown. Networks see the observation recorded where a sub-
 """
 
 from abc import ABC, abstractmethod
-from collections.abc import Hashable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from typing import Any, Optional
 
 import gymnasium as gym
@@ -39,6 +39,12 @@ class GoalSpace(ABC):
         """The sub-goal learners' ``view``, ``overview`` and ``one_hot`` that ``"auto"`` in ``subgoal_learner_kwargs``
         stands for on this goal space's env (observations of ``observation_space``); None: it derives none (the
         default)."""
+        return None
+
+    def learner_codes(self) -> Optional[Callable[[np.ndarray], np.ndarray]]:
+        """What the sub-goal learners read in place of observations ``(..., H, W, C)``, as a function of them, where it
+        differs from the observations (the learners apply it before their ``view``, ``overview`` and ``one_hot``);
+        None: the observations themselves (the default)."""
         return None
 
     @abstractmethod

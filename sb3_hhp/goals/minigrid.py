@@ -45,6 +45,10 @@ PASSABLE = {OBJECT_TO_IDX[name] for name in ("empty", "floor", "goal")}
 DOOR, GOAL, OPEN, LOCKED = OBJECT_TO_IDX["door"], OBJECT_TO_IDX["goal"], STATE_TO_IDX["open"], STATE_TO_IDX["locked"]
 CLOSED = STATE_TO_IDX["closed"]
 BOX = OBJECT_TO_IDX["box"]
+#: objects whose colour tells them apart (a key opens the door of its colour); walls, floors and goal squares have one
+#: colour each
+COLORED = PICKABLE | {DOOR}
+_COLORED_CODES = np.array(sorted(COLORED))
 #: in :meth:`MiniGridGoalSpace.present`: the grid has a goal square, and none is within reach
 GOAL_OUT_OF_REACH = "goal out of reach"
 #: in :meth:`MiniGridGoalSpace.present`: the grid has no goal square, so the task ends with a pick-up (KeyCorridor,
@@ -60,6 +64,11 @@ MAX_COUNTED_DOORS = 8
 #: with ``count_blockers``, the features' count of objects that block the way stops here (its last value: this many
 #: less one, or more)
 MAX_COUNTED_BLOCKERS = 3
+#: with ``use_color`` "relative", what a key holds in place of the carried object's colour: the colour fields then say
+#: how the colours relate (the object in front :data:`SAME_COLOR` as the carried one, or not: 0), not which they are
+RELATIVE = -1
+#: with ``use_color`` "relative": the object in front has the carried object's colour (a key and the door it opens)
+SAME_COLOR = 1
 MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
 N_OBJECTS, N_COLORS, N_STATES = len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE_TO_IDX)
 #: the frame drawn around the cells a sub-goal concerns (a colour MiniGrid's objects never have)
@@ -258,9 +267,14 @@ class MiniGridGoalSpace(GoalSpace):
     """Sub-goal key = (carried object, object in front, its state), read off a
     :class:`MiniGridEgocentricObs` observation; colours are ignored unless ``use_color``.
 
-    :param use_color: distinguish objects by colour (needed when colours matter, e.g. several keys); ``"auto"``: where
-        the task's grids hold keys of more than one colour (ObstructedMaze: two keys, one for the door), read when the
-        goal space is bound to the env (:meth:`bind`; False until then)
+    :param use_color: distinguish objects by colour (needed when colours matter, e.g. several keys); ``"relative"``:
+        by how their colours relate, not which they are: a key then holds whether the object in front has the
+        carried object's colour (:data:`SAME_COLOR`; a key and the door it opens), e.g.
+        ``(key, RELATIVE, door, SAME_COLOR, locked)``, and :meth:`present` and :meth:`features` read colours the same
+        way; ``"auto"``: relative where the task's grids hold keys of more than one colour (ObstructedMaze, whose
+        door colours change with every layout: absolute colours made 191 sub-goals of the same few situations on
+        ObstructedMaze-1Q; docs/design_decisions.rst), read when the goal space is bound to the env (:meth:`bind`;
+        no colours until then)
     :param tile_size: pixels per cell of the rendered images shown to people
     :param keep_doors_open: the sub-goal learners never close the door in front (``toggle`` is masked there, in acting
         and in their targets): a key names *a* closed door, not which, so the learner of "facing a closed door"
@@ -287,6 +301,7 @@ class MiniGridGoalSpace(GoalSpace):
     object_codes: Optional[list[int]] = None
     state_codes: Optional[list[int]] = None
     color_from_env = False  # use_color "auto": set by bind
+    relative_color = False  # use_color "relative" (use_color is then True: the keys have colour fields)
     keep_doors_open = False  # what a goal space pickled before the options reads
     count_open_doors = False
     mark_blockers = False
@@ -296,10 +311,12 @@ class MiniGridGoalSpace(GoalSpace):
                  count_open_doors: bool = False, mark_blockers: bool = False, count_blockers: bool = False) -> None:
         if tile_size < 1:
             raise ValueError(f"tile_size must be >= 1, got {tile_size}")
-        if not isinstance(use_color, bool) and use_color != "auto":
-            raise ValueError(f"use_color must be True, False or 'auto' (from the env's keys), got {use_color!r}")
+        if not isinstance(use_color, bool) and use_color not in ("auto", "relative"):
+            raise ValueError(f"use_color must be True, False, 'relative' (how colours relate) or 'auto' (from the env's "
+                             f"keys), got {use_color!r}")
         self.color_from_env = use_color == "auto"
-        self.use_color = use_color is True
+        self.use_color = use_color is True or use_color == "relative"
+        self.relative_color = use_color == "relative"
         self.tile_size = tile_size
         self.keep_doors_open = bool(keep_doors_open)
         self.count_open_doors = bool(count_open_doors)
@@ -332,23 +349,50 @@ class MiniGridGoalSpace(GoalSpace):
     def bind(self, env: gym.Env) -> None:
         """Record which object types and states the env's grids hold (:func:`grid_codes`, from a copy of the env):
         what :meth:`learner_input` gives the sub-goal learners to read as indicators; with ``use_color`` "auto",
-        whether colours are read."""
+        whether colours are read (as they relate: "relative")."""
         codes = grid_codes(find_minigrid(env))
         self.object_codes, self.state_codes = codes.types, codes.states
         if self.color_from_env:
-            self.use_color = codes.key_colors > 1
+            self.use_color = self.relative_color = codes.key_colors > 1
+
+    @property
+    def color_option(self) -> Union[bool, str]:
+        """The ``use_color`` that makes a goal space with the same keys (the scripted oracle's must match)."""
+        return "relative" if self.relative_color else self.use_color
+
+    def relate_colors(self, obs: np.ndarray) -> np.ndarray:
+        """With relative colours, a copy of observations ``(..., S, S, 3)`` whose colour channel says how each cell's
+        colour relates to the carried object's (what :meth:`present`, :meth:`features` and the sub-goal learners read):
+        :data:`SAME_COLOR` where the agent carries an object of that colour and the cell, not the agent's own, holds one
+        too (keys, balls, boxes, doors), else 0. Without them, the observations themselves."""
+        if not self.relative_color:
+            return obs
+        obs = np.array(obs, copy=True)
+        center = obs.shape[-3] // 2
+        carried = obs[..., center, center, :]
+        colored = np.isin(obs[..., 0], _COLORED_CODES)
+        same = colored & colored[..., center, center, None, None] & (obs[..., 1] == carried[..., None, None, 1])
+        same[..., center, center] = False
+        obs[..., 1] = same
+        return obs
+
+    def learner_codes(self) -> Optional[Callable[[np.ndarray], np.ndarray]]:
+        """With relative colours, :meth:`relate_colors`: the learner of "carrying the key, facing the door of its colour"
+        reads which door that is (``one_hot`` "auto" lists :data:`SAME_COLOR` as the colour channel's code)."""
+        return self.relate_colors if self.relative_color else None
 
     def learner_input(self, observation_space: spaces.Space) -> dict[str, Any]:
         """The sub-goal learners' ``view``, ``overview`` and ``one_hot`` (``subgoal_learner_kwargs``) that ``"auto"``
         stands for, derived from the env: the :data:`LEARNER_VIEW` cells around the agent and an overview of the
         whole canvas (:data:`LEARNER_OVERVIEW`) where the canvas's inner cells are wider than the view, else every
-        inner cell; the object types and states its grids hold (:meth:`bind`) as indicators, colours left out."""
+        inner cell; the object types and states its grids hold (:meth:`bind`) as indicators, colours left out (with
+        relative colours, whether a cell has the carried object's colour: :meth:`learner_codes`)."""
         if self.object_codes is None:
             raise ValueError("subgoal_learner_kwargs 'auto' reads what the env's grids hold: bind the goal space to the "
                              "env first (make_goal_space(goal_space, env) does)")
         wide = observation_space.shape[0] - 2 > LEARNER_VIEW
         return dict(view=LEARNER_VIEW if wide else "inner", overview=LEARNER_OVERVIEW if wide else None,
-                    one_hot=[list(self.object_codes), [], list(self.state_codes)])
+                    one_hot=[list(self.object_codes), [SAME_COLOR] if self.relative_color else [], list(self.state_codes)])
 
     def key(self, obs: np.ndarray) -> Hashable:
         obs = np.asarray(obs)
@@ -365,7 +409,10 @@ class MiniGridGoalSpace(GoalSpace):
         state = int(front[2])
         if self.mark_blockers and front[0] in PICKABLE and blocks is not None and blocks():
             state = BLOCKS
-        if self.use_color:
+        if self.relative_color:
+            same = carried[0] in COLORED and front[0] in COLORED and carried[1] == front[1]
+            key = (int(carried[0]), RELATIVE, int(front[0]), SAME_COLOR if same else 0, state)
+        elif self.use_color:
             key = (int(carried[0]), int(carried[1]), int(front[0]), int(front[1]), state)
         else:
             key = (int(carried[0]), int(front[0]), state)
@@ -382,7 +429,7 @@ class MiniGridGoalSpace(GoalSpace):
         object itself (it blocks the way while on the floor). See :meth:`~sb3_hhp.goals.base.GoalSpace.carried_counterfactual`."""
         if goal_key == SUCCESS_KEY or not isinstance(goal_key, tuple) or goal_key[0] in (EMPTY, 0):
             return None  # the task's own goal or empty hands: nothing to carry
-        kind, colour = goal_key[0], (goal_key[1] if self.use_color else None)
+        kind, colour = goal_key[0], (goal_key[1] if self.use_color and not self.relative_color else None)
         obs, next_obs = np.array(obs, copy=True), np.array(next_obs, copy=True)
         actions = np.asarray(actions).reshape(len(obs))
         center = obs.shape[-3] // 2
@@ -436,7 +483,7 @@ class MiniGridGoalSpace(GoalSpace):
         near[:, center, center] = False
         rows, ys, xs = np.nonzero(near & _INTERACTIVE_TABLE[objects])
         columns = [0, 1, 2] if self.use_color else [0, 2]
-        cells = obs[rows, ys, xs][:, columns]
+        cells = self.relate_colors(obs)[rows, ys, xs][:, columns]
         if self.mark_blockers:  # as the keys name them: objects one picks up that block the way
             cells[blockers(objects, np.full((n, 2), center))[rows, ys, xs], -1] = BLOCKS
         found: list[list[tuple]] = [[] for _ in range(n)]
@@ -481,6 +528,8 @@ class MiniGridGoalSpace(GoalSpace):
             return True
         front_at = 2 if self.use_color else 1
         carried, front = key[:front_at], key[front_at : 2 * front_at]  # (object[, colour]) carried / in front
+        # the same object carried and then in front, or the other way round (relative colours: of its kind)
+        moved = (lambda a, b: a[0] == b[0]) if self.relative_color else (lambda a, b: a == b)
         if goal_key == SUCCESS_KEY:
             if present is None:
                 return True
@@ -507,9 +556,9 @@ class MiniGridGoalSpace(GoalSpace):
                     return (goal_object in present and goal_key[-1] == now) or (toggle and goal_key[-1] == now + 1)
             return goal_object in present or toggle
         if carried[0] == EMPTY:  # a pick-up of the object in front; the agent then faces the emptied cell
-            return front[0] in PICKABLE and goal_carried == front and goal_front[0] == EMPTY
+            return front[0] in PICKABLE and moved(goal_carried, front) and goal_front[0] == EMPTY
         # a drop (onto the empty cell in front, or after a turn to one); the dropped object then lies in front
-        return goal_carried[0] == EMPTY and goal_front == carried
+        return goal_carried[0] == EMPTY and moved(goal_front, carried)
 
     def features(self, obs: np.ndarray) -> np.ndarray:
         """What the preference predictor reads: one-hots of the carried object, the object in front and its
@@ -519,7 +568,7 @@ class MiniGridGoalSpace(GoalSpace):
         (:func:`blockers`), and with ``count_blockers`` one of how many objects block it. Positions are left out, so
         the description recurs across layouts and a hundred labels can teach a ranking of sub-goals that holds in
         every layout."""
-        batch = np.asarray(obs).reshape(-1, *np.shape(obs)[-3:]).astype(np.int64)
+        batch = self.relate_colors(np.asarray(obs).reshape(-1, *np.shape(obs)[-3:]).astype(np.int64))
         center, rows = batch.shape[1] // 2, np.arange(len(batch))
         objects = np.clip(batch[..., 0], 0, N_OBJECTS - 1)
         colors = np.clip(batch[..., 1], 0, N_COLORS - 1)
@@ -529,7 +578,9 @@ class MiniGridGoalSpace(GoalSpace):
             (objects[:, center, center - 1], N_OBJECTS),
             (states[:, center, center - 1], N_STATES),
         ]
-        if self.use_color:
+        if self.relative_color:  # whether the object in front has the carried object's colour
+            parts.append(((batch[:, center, center - 1, 1] == SAME_COLOR).astype(np.int64), 2))
+        elif self.use_color:
             parts += [(colors[:, center, center], N_COLORS), (colors[:, center, center - 1], N_COLORS)]
         if self.count_open_doors:  # how many doors are open, the last value for MAX_COUNTED_DOORS - 1 or more
             parts.append((np.minimum(open_doors(batch), MAX_COUNTED_DOORS - 1), MAX_COUNTED_DOORS))
@@ -607,7 +658,13 @@ class MiniGridGoalSpace(GoalSpace):
         objects, colors = codes[..., 0], codes[..., 1]
         if key == SUCCESS_KEY:
             return objects == GOAL
-        if self.use_color:
+        carrying_now = state.get("carrying")
+        now = EMPTY if not carrying_now else int(carrying_now[0])
+        if self.relative_color:  # a colour only where the key names the carried one's and the state carries it
+            carried, _, front, same, _ = key[:5]
+            carried_color = None
+            front_color = int(carrying_now[1]) if same == SAME_COLOR and carried == now != EMPTY else None
+        elif self.use_color:
             carried, carried_color, front, front_color, _ = key[:5]
         else:
             (carried, front, _), carried_color, front_color = key[:3], None, None
@@ -616,8 +673,6 @@ class MiniGridGoalSpace(GoalSpace):
             return (objects == kind) & (True if color is None else colors == color)
 
         mask = of_kind(front, front_color) if front in INTERACTIVE else np.zeros(objects.shape, dtype=bool)
-        carrying_now = state.get("carrying")
-        now = EMPTY if not carrying_now else int(carrying_now[0])
         if carried != EMPTY and carried != now:
             mask |= of_kind(carried, carried_color)
         return mask
@@ -657,15 +712,18 @@ class MiniGridGoalSpace(GoalSpace):
         if key == SUCCESS_KEY:
             return "task solved"
         if self.use_color:
-            carried, _, front, _, state = key[:5]
+            carried, _, front, same, state = key[:5]
         else:
             carried, front, state = key[:3]
         front_name = IDX_TO_OBJECT.get(front, str(front))
+        of_its_color = self.relative_color and same == SAME_COLOR
         if front_name == "door":
             front_name = f"{IDX_TO_STATE.get(state, state)} door"
             if len(key) == (6 if self.use_color else 4):  # with count_open_doors
                 front_name += f" ({key[-1]} open in all)"
         elif state == BLOCKS:
             front_name += " that blocks the way"
+        if of_its_color:
+            front_name += " of its colour"
         carried_name = "nothing" if carried == EMPTY else IDX_TO_OBJECT.get(carried, str(carried))
         return f"carrying {carried_name}, facing {front_name}"

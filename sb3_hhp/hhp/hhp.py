@@ -398,6 +398,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
                 obs_space, self.primitive_action_space, self.goal_space.achieved, policy=self.subpolicy_policy,
                 subpolicy_kwargs=self.subpolicy_kwargs, alpha=alpha, n_envs=self.n_envs, device=device, seed=self.seed,
                 action_mask=self.goal_space.action_mask, counterfactual=self.goal_space.carried_counterfactual,
+                input_codes=self.goal_space.learner_codes(),
                 **{key: value for key, value in learner.items() if key != "kind"},
             )
         else:

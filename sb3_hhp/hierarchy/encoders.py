@@ -16,7 +16,7 @@ every forward pass of every update as a ``BaseFeaturesExtractor`` would be; any 
 observation wrapper does, on the arrays it is given.
 """
 
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 import torch as th
@@ -229,10 +229,16 @@ class GridInput:
     :param view: ``subgoal_learner_kwargs['view']``: an odd number of central cells, ``"inner"`` or None
     :param overview: ``subgoal_learner_kwargs['overview']``: the side of the overview's blocks (odd, >= 3) or None
     :param one_hot: ``subgoal_learner_kwargs['one_hot']``: the codes of each channel read as indicators, or None
+    :param codes: what is read in place of the observations, as a function of them (the same shape and dtype), applied
+        first: the goal space's :meth:`~sb3_hhp.goals.base.GoalSpace.learner_codes`; None: the observations
     """
 
+    codes: Optional[Callable[[np.ndarray], np.ndarray]] = None  # what an input pickled before the option reads
+
     def __init__(self, space: spaces.Space, view: Optional[int | str] = None, overview: Optional[int] = None,
-                 one_hot: Optional[Sequence[Any]] = None) -> None:
+                 one_hot: Optional[Sequence[Any]] = None,
+                 codes: Optional[Callable[[np.ndarray], np.ndarray]] = None) -> None:
+        self.codes = codes
         self.cells = view_cells(space, view)
         self.overview = None if overview is None else Overview(space, overview)
         self.one_hot = None if one_hot is None else OneHotCodes(space, one_hot)
@@ -250,6 +256,8 @@ class GridInput:
     def crop(self, obs: np.ndarray) -> np.ndarray:
         """The cells of observations ``(..., H, W, C)`` that are read: the central cells with a ``view``, else all;
         with an ``overview``, those cells and the overview's blocks in one row ``(..., 1, cells, C)``."""
+        if self.codes is not None:
+            obs = self.codes(obs)
         cells = obs if self.cells is None else obs[(..., *self.cells, slice(None))]
         if self.overview is None:
             return cells

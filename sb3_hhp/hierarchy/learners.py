@@ -101,7 +101,11 @@ class StackedDQN:
         channel left out) instead of its code as a number; MiniGrid's canvas: ``[11, 6, 3]`` (every object, colour and
         state); ``[[2, 4, 5, 8], [], [1, 2]]``: walls, doors, keys, goal squares, closed and locked (DoorKey). A ReLU
         unit tells "a door here" from one input, where the codes put the door (4) between the wall (2) and the key
-        (5). Each indicator is an input of the first layer, which costs that many times more. None: the codes
+        (5). Each indicator is an input of the first layer, which costs that many times more. None: the codes as numbers
+    :param input_codes: what the learners read in place of observations, as a function of them, before ``view``,
+        ``overview`` and ``one_hot`` (:class:`.GridInput`): the goal space's
+        :meth:`~sb3_hhp.goals.base.GoalSpace.learner_codes` (MiniGrid with relative colours: whether each cell has the
+        carried object's colour). None: the observations
     :param target_range: ``(low, high)``: every TD target clipped to the returns the learners' rewards allow, as HER
         clips its targets (Andrychowicz et al., 2017). With ``alpha`` 0, eq. 5's rewards (+1 on reaching the sub-goal,
         -1 on ending without it, else 0) put every return in ``[-1, 1]``; noisy values above 1 then no longer feed
@@ -140,6 +144,7 @@ class StackedDQN:
         one_hot: Optional[Sequence[int]] = None,
         overview: Optional[int] = None,
         target_range: Optional[Sequence[float]] = None,
+        input_codes: Optional[Callable[[np.ndarray], np.ndarray]] = None,
     ) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"StackedDQN needs a Discrete action space, got {action_space}")
@@ -159,7 +164,7 @@ class StackedDQN:
         kw = checked_subpolicy_kwargs(subpolicy_kwargs)
         self.observation_space, self.action_space = observation_space, action_space
         self.view, self.overview = view, overview
-        self.input = GridInput(observation_space, view, overview, one_hot)  # what the networks read of a state
+        self.input = GridInput(observation_space, view, overview, one_hot, input_codes)  # what the networks read
         self._overview, self._one_hot = self.input.overview, self.input.one_hot
         self.kwargs = kw
         self.lr, self.gamma = float(kw["learning_rate"]), float(kw["gamma"])

@@ -82,15 +82,16 @@ def layout_goal_space(info: dict) -> Optional[GoalSpace]:
     """The goal space that draws a question in its state's layout, from what its ``info`` holds (None: none can).
 
     MiniGrid questions carry the state's grid (``info["state"]["grid"]``) and the sub-goal keys
-    (``goal1_key``): 5 numbers with colours, 3 without (one more where it faces an open door and the goal space
-    counts open doors).
+    (``goal1_key``): 5 numbers with colours (the second :data:`~sb3_hhp.goals.minigrid.RELATIVE` where they say how
+    colours relate), 3 without (one more where it faces an open door and the goal space counts open doors).
     """
     state, key = info.get("state"), info.get("goal1_key")
     if not isinstance(state, dict) or "grid" not in state or not isinstance(key, list):
         return None
-    from sb3_hhp.goals.minigrid import MiniGridGoalSpace
+    from sb3_hhp.goals.minigrid import RELATIVE, MiniGridGoalSpace
 
-    return MiniGridGoalSpace(use_color=len(key) in (5, 6), tile_size=LAYOUT_TILE)
+    use_color = "relative" if len(key) in (5, 6) and key[1] == RELATIVE else len(key) in (5, 6)
+    return MiniGridGoalSpace(use_color=use_color, tile_size=LAYOUT_TILE)
 
 
 def draw_question(info: dict) -> dict[str, bytes]:

@@ -17,7 +17,7 @@ plan at all gets INCOMPARABLE.
 import heapq
 import time
 from collections.abc import Hashable
-from typing import Any, Optional
+from typing import Any, Optional, Union
 
 import numpy as np
 from minigrid.core.constants import DIR_TO_VEC, OBJECT_TO_IDX, STATE_TO_IDX
@@ -231,7 +231,7 @@ class MiniGridScriptedOracle(Oracle):
     Each query's ``info`` must hold ``state`` (the privileged facts of the state, from
     :meth:`~sb3_hhp.goals.base.GoalSpace.privileged`) and ``goal1_key`` / ``goal2_key``.
 
-    :param use_color: must match the goal space's ``use_color``
+    :param use_color: must match the goal space's (its :attr:`~sb3_hhp.goals.minigrid.MiniGridGoalSpace.color_option`)
     :param count_open_doors: must match the goal space's ``count_open_doors``
     :param mark_blockers: must match the goal space's ``mark_blockers``
     :param name: the annotator name recorded with its answers
@@ -242,7 +242,7 @@ class MiniGridScriptedOracle(Oracle):
     :param fallback_weight: the heuristic's weight of the second search (>= 1)
     """
 
-    def __init__(self, use_color: bool = False, name: str = "scripted", max_seconds: float = 2.0,
+    def __init__(self, use_color: Union[bool, str] = False, name: str = "scripted", max_seconds: float = 2.0,
                  fallback_weight: float = 3.0, count_open_doors: bool = False, mark_blockers: bool = False) -> None:
         super().__init__(name)
         if not max_seconds > 0:
