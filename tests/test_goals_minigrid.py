@@ -15,6 +15,7 @@ from minigrid.core.world_object import Ball, Key, Wall
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
 from sb3_hhp.goals.minigrid import encode_grid, grid_codes
 from sb3_hhp.hierarchy.encoders import GridInput
+from sb3_hhp.label.app import layout_goal_space
 from sb3_hhp.goals.minigrid import (BLOCKS, GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, N_OBJECTS, N_STATES, NO_GOAL_SQUARE,
                                     OPEN_DOORS, RELATIVE, SAME_COLOR)
 from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query, scripted
@@ -1145,4 +1146,14 @@ def test_relative_colours_give_obstructedmaze_the_few_situations_of_its_plans() 
         related.update(plan)
         named.update(key for key, _ in named_oracle.plan(state))
     assert len(related) < len(named)
+    # a question's drawing marks the door the key in hand opens (the labeling page reads the relation off the key)
+    grid = np.asarray(state["grid"])
+    locked = np.argwhere((grid[..., 0] == DOOR) & (grid[..., 2] == LOCKED))
+    assert len(locked) == 2
+    colour = int(grid[tuple(locked[0])][1])
+    state = dict(state, carrying=[KEY, colour, 0])
+    drawer = layout_goal_space({"state": state, "goal1_key": [KEY, RELATIVE, DOOR, SAME_COLOR, LOCKED]})
+    assert drawer.relative_color
+    marked = drawer.concerned_cells(state, (KEY, RELATIVE, DOOR, SAME_COLOR, LOCKED))
+    assert marked[tuple(locked[0])] and not marked[tuple(locked[1])]
     env.close()
