@@ -22,9 +22,11 @@ def test_the_results_page_and_the_summaries_are_up_to_date(capsys):
 
 
 def copy_tree(tmp_path: Path) -> Path:
-    """The files the report reads and writes, copied under ``tmp_path`` (a repository root of their own)."""
+    """The files the report reads and writes, copied under ``tmp_path`` (a repository root of their own) as a clean
+    clone has them: without the run folders (``logs``, gigabytes of checkpoints where runs were trained) and the
+    curves of runs in progress."""
     for folder in (report.RESULTS, report.EXPERIMENTS):
-        shutil.copytree(ROOT / folder, tmp_path / folder)
+        shutil.copytree(ROOT / folder, tmp_path / folder, ignore=shutil.ignore_patterns("logs", "*.partial.csv"))
     for path in (report.PAGE, *report.BLOCKS):
         (tmp_path / path).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(ROOT / path, tmp_path / path)
