@@ -272,9 +272,9 @@ class MiniGridGoalSpace(GoalSpace):
         carried object's colour (:data:`SAME_COLOR`; a key and the door it opens), e.g.
         ``(key, RELATIVE, door, SAME_COLOR, locked)``, and :meth:`present` and :meth:`features` read colours the same
         way; ``"auto"``: relative where the task's grids hold keys of more than one colour (ObstructedMaze, whose
-        door colours change with every layout: absolute colours made 191 sub-goals of the same few situations on
-        ObstructedMaze-1Q; docs/design_decisions.rst), read when the goal space is bound to the env (:meth:`bind`;
-        no colours until then)
+        door colours change with every layout, so that named colours make one sub-goal of each situation per pair of
+        colours; docs/design_decisions.rst), read when the goal space is bound to the env (:meth:`bind`; no colours
+        until then)
     :param tile_size: pixels per cell of the rendered images shown to people
     :param keep_doors_open: the sub-goal learners never close the door in front (``toggle`` is masked there, in acting
         and in their targets): a key names *a* closed door, not which, so the learner of "facing a closed door"
