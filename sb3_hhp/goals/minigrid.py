@@ -48,7 +48,6 @@ BOX = OBJECT_TO_IDX["box"]
 #: objects whose colour tells them apart (a key opens the door of its colour); walls, floors and goal squares have one
 #: colour each
 COLORED = PICKABLE | {DOOR}
-_COLORED_CODES = np.array(sorted(COLORED))
 #: in :meth:`MiniGridGoalSpace.present`: the grid has a goal square, and none is within reach
 GOAL_OUT_OF_REACH = "goal out of reach"
 #: in :meth:`MiniGridGoalSpace.present`: the grid has no goal square, so the task ends with a pick-up (KeyCorridor,
@@ -168,9 +167,9 @@ def open_doors(obs: np.ndarray) -> Union[int, np.ndarray]:
 
 
 _EMPTY_CELL = (EMPTY, 0, 0)
-#: lookups by object id (any byte) of PASSABLE, INTERACTIVE and PICKABLE
-_PASSABLE_TABLE, _INTERACTIVE_TABLE, _PICKABLE_TABLE = (np.isin(np.arange(256), list(ids))
-                                                        for ids in (PASSABLE, INTERACTIVE, PICKABLE))
+#: lookups by object id (any byte) of PASSABLE, INTERACTIVE, PICKABLE and COLORED
+_PASSABLE_TABLE, _INTERACTIVE_TABLE, _PICKABLE_TABLE, _COLORED_TABLE = (
+    np.isin(np.arange(256), list(ids)) for ids in (PASSABLE, INTERACTIVE, PICKABLE, COLORED))
 #: 4-connected neighbours within each grid of a batch (N, S, S), never across grids
 _GRID_CROSS = np.stack([np.zeros((3, 3), dtype=bool), ndimage.generate_binary_structure(2, 1), np.zeros((3, 3), dtype=bool)])
 #: actions whose outcome does not depend on what the agent carries (MiniGridGoalSpace.carried_counterfactual)
@@ -370,7 +369,7 @@ class MiniGridGoalSpace(GoalSpace):
         obs = np.array(obs, copy=True)
         center = obs.shape[-3] // 2
         carried = obs[..., center, center, :]
-        colored = np.isin(obs[..., 0], _COLORED_CODES)
+        colored = _COLORED_TABLE[obs[..., 0]]
         same = colored & colored[..., center, center, None, None] & (obs[..., 1] == carried[..., None, None, 1])
         same[..., center, center] = False
         obs[..., 1] = same

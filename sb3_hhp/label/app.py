@@ -90,8 +90,8 @@ def layout_goal_space(info: dict) -> Optional[GoalSpace]:
         return None
     from sb3_hhp.goals.minigrid import RELATIVE, MiniGridGoalSpace
 
-    use_color = "relative" if len(key) in (5, 6) and key[1] == RELATIVE else len(key) in (5, 6)
-    return MiniGridGoalSpace(use_color=use_color, tile_size=LAYOUT_TILE)
+    colored = len(key) in (5, 6)
+    return MiniGridGoalSpace(use_color="relative" if colored and key[1] == RELATIVE else colored, tile_size=LAYOUT_TILE)
 
 
 def draw_question(info: dict) -> dict[str, bytes]:
