@@ -13,7 +13,7 @@ from minigrid.core.constants import COLOR_TO_IDX, COLORS, DIR_TO_VEC, OBJECT_TO_
 from minigrid.core.world_object import Ball, Key, Wall
 
 from sb3_hhp.goals import SUCCESS_KEY, MiniGridEgocentricObs, MiniGridGoalSpace, make_goal_space, wrap_env
-from sb3_hhp.goals.minigrid import encode_grid, grid_codes
+from sb3_hhp.goals.minigrid import blockers, encode_grid, grid_codes
 from sb3_hhp.hierarchy.encoders import GridInput
 from sb3_hhp.label.app import layout_goal_space
 from sb3_hhp.goals.minigrid import (BLOCKS, GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, N_OBJECTS, N_STATES, NO_GOAL_SQUARE,
@@ -1047,6 +1047,37 @@ def test_grid_codes_are_what_the_tasks_grids_hold(env_id: str, types: list, stat
     space.bind(base)
     assert space.use_color is space.relative_color is (key_colors > 1)
     assert space.color_option == ("relative" if key_colors > 1 else False)
+
+
+@pytest.mark.parametrize("env_id, blocked", [
+    ("MiniGrid-BlockedUnlockPickup-v0", True),  # a ball in front of the locked door in every layout
+    ("MiniGrid-ObstructedMaze-1Q-v1", True),
+    ("MiniGrid-ObstructedMaze-1Dlhb-v0", True),
+    ("MiniGrid-ObstructedMaze-1Dl-v0", False),  # no ball at its door
+    ("MiniGrid-DoorKey-8x8-v0", False),  # a key or ball drawn at random sometimes stands in a passage: not every layout
+    ("MiniGrid-KeyCorridorS4R3-v0", False),
+    ("MiniGrid-UnlockPickup-v0", False),
+])
+def test_mark_blockers_auto_where_the_task_puts_an_object_in_the_way(env_id: str, blocked: bool) -> None:
+    """``mark_blockers="auto"`` marks objects in the way where the task's every layout drawn has one (a ball in front
+    of a door), not where one drawn at random sometimes blocks a passage; the scripted oracle keys alike."""
+    base = gym.make(env_id).unwrapped
+    assert grid_codes(base).blocked is blocked
+
+    def in_the_way(seed: int) -> bool:  # an object blocks the way in the layout of seed, from the agent's start
+        base.reset(seed=seed)
+        return bool(blockers(encode_grid(base.grid)[None, ..., 0], [tuple(base.agent_pos)]).any())
+
+    layouts = [in_the_way(seed) for seed in range(20)]
+    assert all(layouts) if blocked else not all(layouts)
+    space = MiniGridGoalSpace(keep_doors_open=True, mark_blockers="auto")
+    assert space.mark_blockers is False  # until bound
+    env = wrap_env(gym.make(env_id))
+    space = make_goal_space("minigrid_open_doors_found_blockers", env)
+    assert space.mark_blockers is blocked and space.keep_doors_open
+    assert make_oracle("scripted", space, env.observation_space).goal_space.mark_blockers is blocked
+    with pytest.raises(ValueError, match="mark_blockers must be True, False or 'auto'"):
+        MiniGridGoalSpace(mark_blockers="yes")
 
 
 @pytest.mark.parametrize("env_id, view, overview", [

@@ -94,15 +94,21 @@ class GridCodes(NamedTuple):
     states: list[int]
     #: the most colours of keys one layout held
     key_colors: int
+    #: whether an object one picks up blocked the way in every layout as it was drawn (:func:`blockers`, from the
+    #: agent's start): the task puts it there (a ball in front of a door), where elsewhere a key or ball drawn at
+    #: random sometimes happens to
+    blocked: bool = False
 
 
 def grid_codes(base: MiniGridEnv, layouts: int = BOUND_LAYOUTS) -> GridCodes:
     """What the grids of ``base``'s task hold, over ``layouts`` layouts drawn by a copy of it (``base`` itself is not
     reset)."""
     env = copy.deepcopy(base)
-    types, states, key_colors = set(), set(), 0
+    types, states, key_colors, blocked = set(), set(), 0, True
     for seed in range(layouts):
         env.reset(seed=seed)
+        grid = encode_grid(env.grid)  # [x, y], as agent_pos
+        blocked = blocked and bool(blockers(grid[None, ..., 0], [tuple(env.agent_pos)]).any())
         objects = [obj for obj in [*env.grid.grid, env.carrying] if obj is not None]
         objects += [obj.contains for obj in objects if isinstance(obj, Box) and obj.contains is not None]
         for obj in objects:
@@ -111,7 +117,7 @@ def grid_codes(base: MiniGridEnv, layouts: int = BOUND_LAYOUTS) -> GridCodes:
             if kind == DOOR:
                 states.update({CLOSED, state} - {OPEN})
         key_colors = max(key_colors, len({obj.color for obj in objects if obj.type == "key"}))
-    return GridCodes(sorted(types), sorted(states), key_colors)
+    return GridCodes(sorted(types), sorted(states), key_colors, blocked)
 
 
 #: the paper's MultiRoom task, which MiniGrid does not register: 12 rooms of at most 10x10 cells (a 25x25 grid,
@@ -288,7 +294,9 @@ class MiniGridGoalSpace(GoalSpace):
         :data:`BLOCKS`, e.g. ``(nothing, ball, BLOCKS)``, as :meth:`present` does such objects within reach: a ball
         in front of a door is then another sub-goal than the ball moved aside (ObstructedMaze, where the learner of
         "facing a ball", asked after the blocking ball was picked up, put it back on its cell, its quickest way;
-        docs/design_decisions.rst)
+        docs/design_decisions.rst); ``"auto"``: where the task puts such an object in every layout it draws
+        (:func:`grid_codes`: BlockedUnlockPickup, ObstructedMaze's "b" tasks), read when the goal space is bound to
+        the env (:meth:`bind`; off until then)
     :param count_blockers: the features (what the predictor, and with ``meta_input`` features the meta-controller,
         read) also hold how many objects on the canvas block the way (0, 1, 2 or more; :func:`blockers`): whether the
         key in hand goes to its door or is put down to move a ball first depends on it (ObstructedMaze,
@@ -300,6 +308,7 @@ class MiniGridGoalSpace(GoalSpace):
     object_codes: Optional[list[int]] = None
     state_codes: Optional[list[int]] = None
     color_from_env = False  # use_color "auto": set by bind
+    blockers_from_env = False  # mark_blockers "auto": set by bind
     relative_color = False  # use_color "relative" (use_color is then True: the keys have colour fields)
     keep_doors_open = False  # what a goal space pickled before the options reads
     count_open_doors = False
@@ -307,19 +316,24 @@ class MiniGridGoalSpace(GoalSpace):
     count_blockers = False
 
     def __init__(self, use_color: Union[bool, str] = False, tile_size: int = 16, keep_doors_open: bool = False,
-                 count_open_doors: bool = False, mark_blockers: bool = False, count_blockers: bool = False) -> None:
+                 count_open_doors: bool = False, mark_blockers: Union[bool, str] = False,
+                 count_blockers: bool = False) -> None:
         if tile_size < 1:
             raise ValueError(f"tile_size must be >= 1, got {tile_size}")
         if not isinstance(use_color, bool) and use_color not in ("auto", "relative"):
             raise ValueError(f"use_color must be True, False, 'relative' (how colours relate) or 'auto' (from the env's "
                              f"keys), got {use_color!r}")
+        if not isinstance(mark_blockers, bool) and mark_blockers != "auto":
+            raise ValueError(f"mark_blockers must be True, False or 'auto' (where the env's layouts put an object in "
+                             f"the way), got {mark_blockers!r}")
         self.color_from_env = use_color == "auto"
         self.use_color = use_color is True or use_color == "relative"
         self.relative_color = use_color == "relative"
         self.tile_size = tile_size
         self.keep_doors_open = bool(keep_doors_open)
         self.count_open_doors = bool(count_open_doors)
-        self.mark_blockers = bool(mark_blockers)
+        self.blockers_from_env = mark_blockers == "auto"
+        self.mark_blockers = mark_blockers is True
         self.count_blockers = bool(count_blockers)
 
     def action_mask(self, obs: np.ndarray) -> Optional[np.ndarray]:
@@ -348,11 +362,14 @@ class MiniGridGoalSpace(GoalSpace):
     def bind(self, env: gym.Env) -> None:
         """Record which object types and states the env's grids hold (:func:`grid_codes`, from a copy of the env):
         what :meth:`learner_input` gives the sub-goal learners to read as indicators; with ``use_color`` "auto",
-        whether colours are read (as they relate: "relative")."""
+        whether colours are read (as they relate: "relative"); with ``mark_blockers`` "auto", whether objects in the
+        way are marked."""
         codes = grid_codes(find_minigrid(env))
         self.object_codes, self.state_codes = codes.types, codes.states
         if self.color_from_env:
             self.use_color = self.relative_color = codes.key_colors > 1
+        if self.blockers_from_env:
+            self.mark_blockers = codes.blocked
 
     @property
     def color_option(self) -> Union[bool, str]:
