@@ -1070,14 +1070,15 @@ def test_mark_blockers_auto_where_the_task_puts_an_object_in_the_way(env_id: str
 
     layouts = [in_the_way(seed) for seed in range(20)]
     assert all(layouts) if blocked else not all(layouts)
-    space = MiniGridGoalSpace(keep_doors_open=True, mark_blockers="auto")
-    assert space.mark_blockers is False  # until bound
+    space = MiniGridGoalSpace(keep_doors_open=True, mark_blockers="auto", count_blockers="auto")
+    assert space.mark_blockers is space.count_blockers is False  # until bound
     env = wrap_env(gym.make(env_id))
     space = make_goal_space("minigrid_open_doors_found_blockers", env)
-    assert space.mark_blockers is blocked and space.keep_doors_open
+    assert space.mark_blockers is space.count_blockers is blocked and space.keep_doors_open
     assert make_oracle("scripted", space, env.observation_space).goal_space.mark_blockers is blocked
-    with pytest.raises(ValueError, match="mark_blockers must be True, False or 'auto'"):
-        MiniGridGoalSpace(mark_blockers="yes")
+    for option in ("mark_blockers", "count_blockers"):
+        with pytest.raises(ValueError, match=f"{option} must be True, False or 'auto'"):
+            MiniGridGoalSpace(**{option: "yes"})
 
 
 @pytest.mark.parametrize("env_id, view, overview", [

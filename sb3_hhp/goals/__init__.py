@@ -18,9 +18,10 @@ NAMED_GOAL_SPACES = {
     "minigrid_count_doors": lambda: MiniGridGoalSpace(keep_doors_open=True, count_open_doors=True),
     "minigrid_color_open_doors": lambda: MiniGridGoalSpace(use_color=True, keep_doors_open=True),
     "minigrid_open_doors_blockers": lambda: MiniGridGoalSpace(keep_doors_open=True, mark_blockers=True),
-    # the same, with balls in the way marked where the task puts them there (a candidate for the minigrid entry's)
+    # the same, with objects in the way marked and counted where the task puts them there (a candidate for the
+    # minigrid entry's)
     "minigrid_open_doors_found_blockers": lambda: MiniGridGoalSpace(use_color="auto", keep_doors_open=True,
-                                                                    mark_blockers="auto"),
+                                                                    mark_blockers="auto", count_blockers="auto"),
     "minigrid_open_doors_blockers_counted": lambda: MiniGridGoalSpace(keep_doors_open=True, mark_blockers=True,
                                                                       count_blockers=True),
     # Montezuma's Revenge: the paper's detector boxes of its first room, compared with the run's first frame

@@ -300,7 +300,7 @@ class MiniGridGoalSpace(GoalSpace):
     :param count_blockers: the features (what the predictor, and with ``meta_input`` features the meta-controller,
         read) also hold how many objects on the canvas block the way (0, 1, 2 or more; :func:`blockers`): whether the
         key in hand goes to its door or is put down to move a ball first depends on it (ObstructedMaze,
-        docs/design_decisions.rst). Keys are unchanged
+        docs/design_decisions.rst). Keys are unchanged. ``"auto"`` as ``mark_blockers``'s
     """
 
     name = "minigrid"
@@ -308,7 +308,7 @@ class MiniGridGoalSpace(GoalSpace):
     object_codes: Optional[list[int]] = None
     state_codes: Optional[list[int]] = None
     color_from_env = False  # use_color "auto": set by bind
-    blockers_from_env = False  # mark_blockers "auto": set by bind
+    blockers_from_env = (False, False)  # mark_blockers, count_blockers "auto": set by bind
     relative_color = False  # use_color "relative" (use_color is then True: the keys have colour fields)
     keep_doors_open = False  # what a goal space pickled before the options reads
     count_open_doors = False
@@ -317,24 +317,25 @@ class MiniGridGoalSpace(GoalSpace):
 
     def __init__(self, use_color: Union[bool, str] = False, tile_size: int = 16, keep_doors_open: bool = False,
                  count_open_doors: bool = False, mark_blockers: Union[bool, str] = False,
-                 count_blockers: bool = False) -> None:
+                 count_blockers: Union[bool, str] = False) -> None:
         if tile_size < 1:
             raise ValueError(f"tile_size must be >= 1, got {tile_size}")
         if not isinstance(use_color, bool) and use_color not in ("auto", "relative"):
             raise ValueError(f"use_color must be True, False, 'relative' (how colours relate) or 'auto' (from the env's "
                              f"keys), got {use_color!r}")
-        if not isinstance(mark_blockers, bool) and mark_blockers != "auto":
-            raise ValueError(f"mark_blockers must be True, False or 'auto' (where the env's layouts put an object in "
-                             f"the way), got {mark_blockers!r}")
+        for name, value in (("mark_blockers", mark_blockers), ("count_blockers", count_blockers)):
+            if not isinstance(value, bool) and value != "auto":
+                raise ValueError(f"{name} must be True, False or 'auto' (where the env's layouts put an object in the "
+                                 f"way), got {value!r}")
         self.color_from_env = use_color == "auto"
         self.use_color = use_color is True or use_color == "relative"
         self.relative_color = use_color == "relative"
         self.tile_size = tile_size
         self.keep_doors_open = bool(keep_doors_open)
         self.count_open_doors = bool(count_open_doors)
-        self.blockers_from_env = mark_blockers == "auto"
         self.mark_blockers = mark_blockers is True
-        self.count_blockers = bool(count_blockers)
+        self.blockers_from_env = (mark_blockers == "auto", count_blockers == "auto")
+        self.count_blockers = count_blockers is True
 
     def action_mask(self, obs: np.ndarray) -> Optional[np.ndarray]:
         """With ``keep_doors_open``: every MiniGrid action but ``toggle`` in front of an open door (which would close it)."""
@@ -363,13 +364,16 @@ class MiniGridGoalSpace(GoalSpace):
         """Record which object types and states the env's grids hold (:func:`grid_codes`, from a copy of the env):
         what :meth:`learner_input` gives the sub-goal learners to read as indicators; with ``use_color`` "auto",
         whether colours are read (as they relate: "relative"); with ``mark_blockers`` "auto", whether objects in the
-        way are marked."""
+        way are marked (and with ``count_blockers`` "auto", counted)."""
         codes = grid_codes(find_minigrid(env))
         self.object_codes, self.state_codes = codes.types, codes.states
         if self.color_from_env:
             self.use_color = self.relative_color = codes.key_colors > 1
-        if self.blockers_from_env:
+        mark, count = self.blockers_from_env
+        if mark:
             self.mark_blockers = codes.blocked
+        if count:
+            self.count_blockers = codes.blocked
 
     @property
     def color_option(self) -> Union[bool, str]:
