@@ -1073,8 +1073,10 @@ def test_mark_blockers_auto_where_the_task_puts_an_object_in_the_way(env_id: str
     space = MiniGridGoalSpace(keep_doors_open=True, mark_blockers="auto", count_blockers="auto")
     assert space.mark_blockers is space.count_blockers is False  # until bound
     env = wrap_env(gym.make(env_id))
-    space = make_goal_space("minigrid_open_doors_found_blockers", env)
+    space = make_goal_space("minigrid_open_doors", env)  # the minigrid entry's
     assert space.mark_blockers is space.count_blockers is blocked and space.keep_doors_open
+    unmarked = make_goal_space("minigrid_open_doors_unmarked", env)
+    assert not unmarked.mark_blockers and not unmarked.count_blockers and unmarked.keep_doors_open
     assert make_oracle("scripted", space, env.observation_space).goal_space.mark_blockers is blocked
     for option in ("mark_blockers", "count_blockers"):
         with pytest.raises(ValueError, match=f"{option} must be True, False or 'auto'"):

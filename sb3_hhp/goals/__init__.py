@@ -14,14 +14,14 @@ GOAL_SPACES: dict[str, type[GoalSpace]] = {"minigrid": MiniGridGoalSpace, "fetch
 #: goal spaces with settings, by name (for the YAML): MiniGrid keys that tell objects apart by colour (several keys)
 NAMED_GOAL_SPACES = {
     "minigrid_color": lambda: MiniGridGoalSpace(use_color=True),
-    "minigrid_open_doors": lambda: MiniGridGoalSpace(use_color="auto", keep_doors_open=True),
+    # the minigrid entry's: colours related and objects in the way marked where the task's layouts call for them
+    "minigrid_open_doors": lambda: MiniGridGoalSpace(use_color="auto", keep_doors_open=True, mark_blockers="auto",
+                                                     count_blockers="auto"),
+    # the same without marking objects in the way (the entry's before)
+    "minigrid_open_doors_unmarked": lambda: MiniGridGoalSpace(use_color="auto", keep_doors_open=True),
     "minigrid_count_doors": lambda: MiniGridGoalSpace(keep_doors_open=True, count_open_doors=True),
     "minigrid_color_open_doors": lambda: MiniGridGoalSpace(use_color=True, keep_doors_open=True),
     "minigrid_open_doors_blockers": lambda: MiniGridGoalSpace(keep_doors_open=True, mark_blockers=True),
-    # the same, with objects in the way marked and counted where the task puts them there (a candidate for the
-    # minigrid entry's)
-    "minigrid_open_doors_found_blockers": lambda: MiniGridGoalSpace(use_color="auto", keep_doors_open=True,
-                                                                    mark_blockers="auto", count_blockers="auto"),
     "minigrid_open_doors_blockers_counted": lambda: MiniGridGoalSpace(keep_doors_open=True, mark_blockers=True,
                                                                       count_blockers=True),
     # Montezuma's Revenge: the paper's detector boxes of its first room, compared with the run's first frame
