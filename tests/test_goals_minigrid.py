@@ -1078,6 +1078,7 @@ def test_mark_blockers_auto_where_the_task_puts_an_object_in_the_way(env_id: str
     unmarked = make_goal_space("minigrid_open_doors_unmarked", env)
     assert not unmarked.mark_blockers and not unmarked.count_blockers and unmarked.keep_doors_open
     assert make_oracle("scripted", space, env.observation_space).goal_space.mark_blockers is blocked
+    env.close()
     for option in ("mark_blockers", "count_blockers"):
         with pytest.raises(ValueError, match=f"{option} must be True, False or 'auto'"):
             MiniGridGoalSpace(**{option: "yes"})

@@ -333,8 +333,8 @@ class MiniGridGoalSpace(GoalSpace):
         self.tile_size = tile_size
         self.keep_doors_open = bool(keep_doors_open)
         self.count_open_doors = bool(count_open_doors)
-        self.mark_blockers = mark_blockers is True
         self.blockers_from_env = (mark_blockers == "auto", count_blockers == "auto")
+        self.mark_blockers = mark_blockers is True
         self.count_blockers = count_blockers is True
 
     def action_mask(self, obs: np.ndarray) -> Optional[np.ndarray]:
