@@ -1267,6 +1267,27 @@ def test_meta_controller_reads_goal_space_features_or_observations() -> None:
 # ---------------------------------------------------------------------------- resume
 
 
+def test_load_from_a_moved_run_folder_names_the_store_to_pass(tmp_path) -> None:
+    """A model saved beside its preference store, the folder then moved: loading it as saved is refused with what to
+    pass (nothing is created at the old place); loading it with the store's new path reads the labels there."""
+    run = tmp_path / "run"
+    run.mkdir()
+    model = make_model(DOORKEY, preference_db=str(run / "prefs.sqlite"), subgoal_learner_kwargs=dict(kind="heads"))
+    model.learn(1_500)
+    asked = model.store.count_asked()
+    assert asked > 0
+    model.save(run / "hhp")
+    model.store.close()
+    moved = run.rename(tmp_path / "moved")
+    with pytest.raises(ValueError, match=r"its folder .*run' does not exist.*preference_db='RUN/preferences.sqlite'"):
+        HhP.load(moved / "hhp", env=gym.make(DOORKEY))
+    assert not run.exists()
+    loaded = HhP.load(moved / "hhp", env=gym.make(DOORKEY), preference_db=str(moved / "prefs.sqlite"))
+    assert loaded.store.count_asked() == asked == loaded.query_selector.used
+    with pytest.raises(ValueError, match="does not exist"):
+        make_model(DOORKEY, preference_db=str(tmp_path / "no such folder" / "prefs.sqlite"))
+
+
 @pytest.mark.parametrize("budget, first_steps", [(10, 3_000), (2_000, 1_000)])
 def test_resume_with_a_preference_database(tmp_path, budget: int, first_steps: int) -> None:
     """Budget 10 is spent before the save (the resumed run must ask nothing more); budget 2000 is not

@@ -422,7 +422,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
             self.goal_space, strategy="random" if self.discovery_strategy == "random" else "csd", seed=self.seed,
             **{key: value for key, value in self.discovery_kwargs.items() if key != "strategy"},
         )
-        self.store = PreferenceStore(self.preference_db or ":memory:", create=True)
+        self.store = PreferenceStore(self._store_path(), create=True)
         self.store.set_query_budget(self.query_budget)  # shown on the labeling page as "asked / budget"
         self.subgoal_table = SubgoalTable(self.store)  # the labeling page's gallery, in the store's file
         self.oracle = self._make_oracle()
@@ -689,6 +689,20 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
             "_bonus_key", "_bonus_cache", "_bonus_valid", "_choice_steps", "_unscored", "_primitive_env",
             *(["learn"] if "learn" in vars(self) else []),  # a bound learn (sb3_hhp.train --resume) is no data of the model
         ]
+
+    def _store_path(self) -> str:
+        """Where the preference store is: ``preference_db``, or ``":memory:"``. A file whose folder does not exist is
+        refused with what to pass instead: a model loaded from a moved run folder names the store it was saved with."""
+        if not self.preference_db:
+            return ":memory:"
+        folder = pathlib.Path(self.preference_db).expanduser().parent
+        if not folder.is_dir():
+            raise ValueError(
+                f"The preference store {str(self.preference_db)!r} cannot be opened: its folder {str(folder)!r} does not "
+                "exist. A model loaded from a moved run folder names the store it was saved with: load it with the "
+                "store where it is now, HhP.load(path, preference_db='RUN/preferences.sqlite'), or with "
+                "preference_db=None for an empty store in memory")
+        return str(self.preference_db)
 
     def components_state(self) -> dict[str, Any]:
         """Everything beyond the meta-controller: subpolicies, predictor (with the preference data), RND and
