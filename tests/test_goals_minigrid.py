@@ -27,7 +27,7 @@ WALL = OBJECT_TO_IDX["wall"]
 KEY = OBJECT_TO_IDX["key"]
 DOOR = OBJECT_TO_IDX["door"]
 GOAL = OBJECT_TO_IDX["goal"]
-OPEN, LOCKED = STATE_TO_IDX["open"], STATE_TO_IDX["locked"]
+OPEN, CLOSED, LOCKED = STATE_TO_IDX["open"], STATE_TO_IDX["closed"], STATE_TO_IDX["locked"]
 
 # the situations of a DoorKey plan, as (carried, front, front state) keys
 FACING_KEY = (EMPTY, KEY, 0)
@@ -1159,8 +1159,44 @@ def test_relative_colours_name_a_key_and_the_door_it_opens_whatever_their_colour
     np.testing.assert_array_equal(read.encode(opens), read.encode(opens_too))
     assert not np.array_equal(read.encode(opens), read.encode(other_door))
     assert read.encode(opens)[3, 2].sum() == 3 and read.encode(other_door)[3, 2].sum() == 2  # door, same colour, locked
-    # the scripted oracle keys its plans the same way (make_oracle passes the goal space's colour option)
+    # the scripted oracle keys its plans the same way (make_oracle passes the goal space's colour options)
     assert make_oracle("scripted", space, spaces.Box(0, 10, opens.shape, np.uint8)).goal_space.relative_color
+
+
+def test_colours_relate_a_key_and_a_door_only_unless_any_pair_is_asked_for() -> None:
+    """Relative colours relate the carried key to a door of its colour (the one relation MiniGrid's steps read), not a
+    ball to a ball, a key to a ball or a box to a box; ``color_relation="any"`` relates every two objects with colours.
+    Keys, present, features and what the learners read agree; the scripted oracle is made with the same relation."""
+    green, purple = COLOR_TO_IDX["green"], COLOR_TO_IDX["purple"]
+    ball, box = OBJECT_TO_IDX["ball"], OBJECT_TO_IDX["box"]
+    opens, any_pair = MiniGridGoalSpace(use_color="relative"), MiniGridGoalSpace(use_color="relative", color_relation="any")
+    assert opens.color_relation == "opens" and any_pair.color_relation == "any"
+    pairs = {  # (carried, in front): whether "opens" relates their colour
+        ((KEY, green, 0), (DOOR, green, LOCKED)): True,
+        ((KEY, green, 0), (DOOR, green, CLOSED)): True,
+        ((ball, green, 0), (ball, green, 0)): False,
+        ((KEY, green, 0), (ball, green, 0)): False,
+        ((ball, green, 0), (DOOR, green, LOCKED)): False,
+        ((box, green, 0), (box, green, 0)): False,
+        ((ball, green, 0), (KEY, green, 0)): False,
+    }
+    for (carried, front), related in pairs.items():
+        obs = _holding(carried, front)
+        assert opens.key(obs)[3] == (SAME_COLOR if related else 0), (carried, front)
+        assert any_pair.key(obs)[3] == SAME_COLOR, (carried, front)  # every pair here has one colour
+        assert opens.relate_colors(obs)[3, 2, 1] == (SAME_COLOR if related else 0)
+        assert ((front[0], SAME_COLOR, front[2]) in opens.present(obs)) is related
+        if not related:  # the colour in front then changes nothing the goal space reads
+            recoloured = _holding(carried, (front[0], purple, front[2]))
+            assert opens.key(recoloured) == opens.key(obs)
+            np.testing.assert_array_equal(opens.features(recoloured), opens.features(obs))
+    # a ball of another colour than the carried one: unrelated either way
+    assert any_pair.key(_holding((ball, green, 0), (ball, purple, 0)))[3] == 0
+    with pytest.raises(ValueError, match="color_relation must be 'opens'"):
+        MiniGridGoalSpace(use_color="relative", color_relation="keys")
+    observation_space = spaces.Box(0, 10, (7, 7, 3), np.uint8)
+    for space in (opens, any_pair):
+        assert make_oracle("scripted", space, observation_space).goal_space.color_relation == space.color_relation
 
 
 def test_relative_colours_give_obstructedmaze_the_few_situations_of_its_plans() -> None:

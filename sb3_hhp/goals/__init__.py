@@ -17,8 +17,13 @@ NAMED_GOAL_SPACES = {
     # the minigrid entry's: colours related and objects in the way marked where the task's layouts call for them
     "minigrid_open_doors": lambda: MiniGridGoalSpace(use_color="auto", keep_doors_open=True, mark_blockers="auto",
                                                      count_blockers="auto"),
-    # the same without marking objects in the way (the entry's before)
-    "minigrid_open_doors_unmarked": lambda: MiniGridGoalSpace(use_color="auto", keep_doors_open=True),
+    # the entry's with colours related for any two objects, not only a key and a door (the entry's before)
+    "minigrid_open_doors_any_colours": lambda: MiniGridGoalSpace(use_color="auto", keep_doors_open=True,
+                                                                 mark_blockers="auto", count_blockers="auto",
+                                                                 color_relation="any"),
+    # that without marking objects in the way (the entry's before both)
+    "minigrid_open_doors_unmarked": lambda: MiniGridGoalSpace(use_color="auto", keep_doors_open=True,
+                                                              color_relation="any"),
     "minigrid_count_doors": lambda: MiniGridGoalSpace(keep_doors_open=True, count_open_doors=True),
     "minigrid_color_open_doors": lambda: MiniGridGoalSpace(use_color=True, keep_doors_open=True),
     "minigrid_open_doors_blockers": lambda: MiniGridGoalSpace(keep_doors_open=True, mark_blockers=True),

@@ -68,6 +68,10 @@ MAX_COUNTED_BLOCKERS = 3
 RELATIVE = -1
 #: with ``use_color`` "relative": the object in front has the carried object's colour (a key and the door it opens)
 SAME_COLOR = 1
+#: with ``use_color`` "relative", the pairs (carried, in front) whose colours a key relates (``color_relation``):
+#: "opens", a key and a door, the one relation MiniGrid's dynamics read (a key opens the door of its colour); "any",
+#: any two objects that have colours (keys, balls, boxes, doors)
+COLOR_RELATIONS = ("opens", "any")
 MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
 N_OBJECTS, N_COLORS, N_STATES = len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE_TO_IDX)
 #: the frame drawn around the cells a sub-goal concerns (a colour MiniGrid's objects never have)
@@ -178,6 +182,9 @@ _PASSABLE_TABLE, _INTERACTIVE_TABLE, _PICKABLE_TABLE, _COLORED_TABLE = (
     np.isin(np.arange(256), list(ids)) for ids in (PASSABLE, INTERACTIVE, PICKABLE, COLORED))
 #: 4-connected neighbours within each grid of a batch (N, S, S), never across grids
 _GRID_CROSS = np.stack([np.zeros((3, 3), dtype=bool), ndimage.generate_binary_structure(2, 1), np.zeros((3, 3), dtype=bool)])
+#: (carried, cell) object ids (any bytes) whose colours relate, by ``color_relation``
+_RELATED_TABLES = {"opens": np.zeros((256, 256), dtype=bool), "any": _COLORED_TABLE[:, None] & _COLORED_TABLE[None, :]}
+_RELATED_TABLES["opens"][OBJECT_TO_IDX["key"], DOOR] = True
 #: actions whose outcome does not depend on what the agent carries (MiniGridGoalSpace.carried_counterfactual)
 _CARRY_FREE_ACTIONS = np.array([Actions.left, Actions.right, Actions.forward, Actions.done])
 
@@ -297,6 +304,11 @@ class MiniGridGoalSpace(GoalSpace):
         docs/design_decisions.rst); ``"auto"``: where the task puts such an object in every layout it draws
         (:func:`grid_codes`: BlockedUnlockPickup, ObstructedMaze's "b" tasks), read when the goal space is bound to
         the env (:meth:`bind`; off until then)
+    :param color_relation: with relative colours, which pairs of the carried object and a cell they relate: "opens"
+        a key and a door only (the key opens the door of its colour; other pairs of colours change nothing a step
+        does, and each would make one more sub-goal of every situation), "any" every two objects with colours
+        (ObstructedMaze-1Q: of the 53 sub-goals of a 600k-step run with "any", 14 related the colours of another pair
+        than a key and a door; docs/design_decisions.rst)
     :param count_blockers: the features (what the predictor, and with ``meta_input`` features the meta-controller,
         read) also hold how many objects on the canvas block the way (0, 1, 2 or more; :func:`blockers`): whether the
         key in hand goes to its door or is put down to move a ball first depends on it (ObstructedMaze,
@@ -310,6 +322,7 @@ class MiniGridGoalSpace(GoalSpace):
     color_from_env = False  # use_color "auto": set by bind
     blockers_from_env = (False, False)  # mark_blockers, count_blockers "auto": set by bind
     relative_color = False  # use_color "relative" (use_color is then True: the keys have colour fields)
+    color_relation = "any"  # what a goal space pickled before the option related
     keep_doors_open = False  # what a goal space pickled before the options reads
     count_open_doors = False
     mark_blockers = False
@@ -317,7 +330,7 @@ class MiniGridGoalSpace(GoalSpace):
 
     def __init__(self, use_color: Union[bool, str] = False, tile_size: int = 16, keep_doors_open: bool = False,
                  count_open_doors: bool = False, mark_blockers: Union[bool, str] = False,
-                 count_blockers: Union[bool, str] = False) -> None:
+                 count_blockers: Union[bool, str] = False, color_relation: str = "opens") -> None:
         if tile_size < 1:
             raise ValueError(f"tile_size must be >= 1, got {tile_size}")
         if not isinstance(use_color, bool) and use_color not in ("auto", "relative"):
@@ -327,6 +340,10 @@ class MiniGridGoalSpace(GoalSpace):
             if not isinstance(value, bool) and value != "auto":
                 raise ValueError(f"{name} must be True, False or 'auto' (where the env's layouts put an object in the "
                                  f"way), got {value!r}")
+        if color_relation not in COLOR_RELATIONS:
+            raise ValueError(f"color_relation must be 'opens' (a key and the door of its colour) or 'any' (any two "
+                             f"objects with colours), got {color_relation!r}")
+        self.color_relation = color_relation
         self.color_from_env = use_color == "auto"
         self.use_color = use_color is True or use_color == "relative"
         self.relative_color = use_color == "relative"
@@ -384,14 +401,15 @@ class MiniGridGoalSpace(GoalSpace):
         """With relative colours, a copy of observations ``(..., S, S, 3)`` whose colour channel says how each cell's
         colour relates to the carried object's (what :meth:`present`, :meth:`features` and the sub-goal learners read):
         :data:`SAME_COLOR` where the agent carries an object of that colour and the cell, not the agent's own, holds one
-        too (keys, balls, boxes, doors), else 0. Without them, the observations themselves."""
+        too that ``color_relation`` relates to it (a door to a key; with "any", keys, balls, boxes and doors to each
+        other), else 0. Without them, the observations themselves."""
         if not self.relative_color:
             return obs
         obs = np.array(obs, copy=True)
         center = obs.shape[-3] // 2
         carried = obs[..., center, center, :]
-        colored = _COLORED_TABLE[obs[..., 0]]
-        same = colored & colored[..., center, center, None, None] & (obs[..., 1] == carried[..., None, None, 1])
+        related = _RELATED_TABLES[self.color_relation][carried[..., None, None, 0], obs[..., 0]]
+        same = related & (obs[..., 1] == carried[..., None, None, 1])
         same[..., center, center] = False
         obs[..., 1] = same
         return obs
@@ -430,7 +448,7 @@ class MiniGridGoalSpace(GoalSpace):
         if self.mark_blockers and front[0] in PICKABLE and blocks is not None and blocks():
             state = BLOCKS
         if self.relative_color:
-            same = carried[0] in COLORED and front[0] in COLORED and carried[1] == front[1]
+            same = _RELATED_TABLES[self.color_relation][int(carried[0]), int(front[0])] and carried[1] == front[1]
             key = (int(carried[0]), RELATIVE, int(front[0]), SAME_COLOR if same else 0, state)
         elif self.use_color:
             key = (int(carried[0]), int(carried[1]), int(front[0]), int(front[1]), state)

@@ -234,6 +234,7 @@ class MiniGridScriptedOracle(Oracle):
     :param use_color: must match the goal space's (its :attr:`~sb3_hhp.goals.minigrid.MiniGridGoalSpace.color_option`)
     :param count_open_doors: must match the goal space's ``count_open_doors``
     :param mark_blockers: must match the goal space's ``mark_blockers``
+    :param color_relation: must match the goal space's ``color_relation``
     :param name: the annotator name recorded with its answers
     :param max_seconds: most seconds the plan of one question may take (answers run on the training thread): the
         first quarter searches a shortest plan; when none is found by then, the rest searches one at most
@@ -243,14 +244,15 @@ class MiniGridScriptedOracle(Oracle):
     """
 
     def __init__(self, use_color: Union[bool, str] = False, name: str = "scripted", max_seconds: float = 2.0,
-                 fallback_weight: float = 3.0, count_open_doors: bool = False, mark_blockers: bool = False) -> None:
+                 fallback_weight: float = 3.0, count_open_doors: bool = False, mark_blockers: bool = False,
+                 color_relation: str = "opens") -> None:
         super().__init__(name)
         if not max_seconds > 0:
             raise ValueError(f"max_seconds must be > 0, got {max_seconds}")
         if not fallback_weight >= 1:
             raise ValueError(f"fallback_weight must be >= 1, got {fallback_weight}")
         self.goal_space = MiniGridGoalSpace(use_color=use_color, count_open_doors=count_open_doors,
-                                            mark_blockers=mark_blockers)
+                                            mark_blockers=mark_blockers, color_relation=color_relation)
         self.max_seconds = float(max_seconds)
         self.fallback_weight = float(fallback_weight)
         self.last_plan_weight: Optional[float] = None  # which search found the last plan (1: a shortest one)
