@@ -695,7 +695,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         refused with what to pass instead: a model loaded from a moved run folder names the store it was saved with."""
         if not self.preference_db:
             return ":memory:"
-        folder = pathlib.Path(self.preference_db).expanduser().parent
+        folder = pathlib.Path(self.preference_db).parent
         if not folder.is_dir():
             raise ValueError(
                 f"The preference store {str(self.preference_db)!r} cannot be opened: its folder {str(folder)!r} does not "
