@@ -68,10 +68,6 @@ MAX_COUNTED_BLOCKERS = 3
 RELATIVE = -1
 #: with ``use_color`` "relative": the object in front has the carried object's colour (a key and the door it opens)
 SAME_COLOR = 1
-#: with ``use_color`` "relative", the pairs (carried, in front) whose colours a key relates (``color_relation``):
-#: "opens", a key and a door, the one relation MiniGrid's dynamics read (a key opens the door of its colour); "any",
-#: any two objects that have colours (keys, balls, boxes, doors)
-COLOR_RELATIONS = ("opens", "any")
 MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
 N_OBJECTS, N_COLORS, N_STATES = len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE_TO_IDX)
 #: the frame drawn around the cells a sub-goal concerns (a colour MiniGrid's objects never have)
@@ -182,7 +178,9 @@ _PASSABLE_TABLE, _INTERACTIVE_TABLE, _PICKABLE_TABLE, _COLORED_TABLE = (
     np.isin(np.arange(256), list(ids)) for ids in (PASSABLE, INTERACTIVE, PICKABLE, COLORED))
 #: 4-connected neighbours within each grid of a batch (N, S, S), never across grids
 _GRID_CROSS = np.stack([np.zeros((3, 3), dtype=bool), ndimage.generate_binary_structure(2, 1), np.zeros((3, 3), dtype=bool)])
-#: (carried, cell) object ids (any bytes) whose colours relate, by ``color_relation``
+#: with ``use_color`` "relative", by ``color_relation``: the (carried, cell) object ids (any bytes) whose colours a key
+#: relates: "opens", a key and a door, the one relation MiniGrid's steps read (a key opens the door of its colour);
+#: "any", any two objects that have colours (keys, balls, boxes, doors)
 _RELATED_TABLES = {"opens": np.zeros((256, 256), dtype=bool), "any": _COLORED_TABLE[:, None] & _COLORED_TABLE[None, :]}
 _RELATED_TABLES["opens"][OBJECT_TO_IDX["key"], DOOR] = True
 #: actions whose outcome does not depend on what the agent carries (MiniGridGoalSpace.carried_counterfactual)
@@ -306,9 +304,8 @@ class MiniGridGoalSpace(GoalSpace):
         the env (:meth:`bind`; off until then)
     :param color_relation: with relative colours, which pairs of the carried object and a cell they relate: "opens"
         a key and a door only (the key opens the door of its colour; other pairs of colours change nothing a step
-        does, and each would make one more sub-goal of every situation), "any" every two objects with colours
-        (ObstructedMaze-1Q: of the 53 sub-goals of a 600k-step run with "any", 14 related the colours of another pair
-        than a key and a door; docs/design_decisions.rst)
+        does, and each would make one more sub-goal of a situation), "any" every two objects with colours
+        (docs/design_decisions.rst)
     :param count_blockers: the features (what the predictor, and with ``meta_input`` features the meta-controller,
         read) also hold how many objects on the canvas block the way (0, 1, 2 or more; :func:`blockers`): whether the
         key in hand goes to its door or is put down to move a ball first depends on it (ObstructedMaze,
@@ -340,7 +337,7 @@ class MiniGridGoalSpace(GoalSpace):
             if not isinstance(value, bool) and value != "auto":
                 raise ValueError(f"{name} must be True, False or 'auto' (where the env's layouts put an object in the "
                                  f"way), got {value!r}")
-        if color_relation not in COLOR_RELATIONS:
+        if color_relation not in _RELATED_TABLES:
             raise ValueError(f"color_relation must be 'opens' (a key and the door of its colour) or 'any' (any two "
                              f"objects with colours), got {color_relation!r}")
         self.color_relation = color_relation
