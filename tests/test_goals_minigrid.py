@@ -1,6 +1,7 @@
 """MiniGrid goal space: the egocentric observation, sub-goal keys after real actions, images, and the
 scripted oracle's plan and preferences (sb3_hhp.goals.minigrid, sb3_hhp.oracles.scripted)."""
 
+import pickle
 from types import SimpleNamespace
 
 import gymnasium as gym
@@ -1194,6 +1195,10 @@ def test_colours_relate_a_key_and_a_door_only_unless_any_pair_is_asked_for() -> 
     assert any_pair.key(_holding((ball, green, 0), (ball, purple, 0)))[3] == 0
     with pytest.raises(ValueError, match="color_relation must be 'opens'"):
         MiniGridGoalSpace(use_color="relative", color_relation="keys")
+    # a goal space pickled before the option (a model saved then) relates any pair, as it did
+    saved = pickle.loads(pickle.dumps(opens))
+    del saved.__dict__["color_relation"]
+    assert saved.key(_holding((ball, green, 0), (ball, green, 0)))[3] == SAME_COLOR
     observation_space = spaces.Box(0, 10, (7, 7, 3), np.uint8)
     for space in (opens, any_pair):
         assert make_oracle("scripted", space, observation_space).goal_space.color_relation == space.color_relation
