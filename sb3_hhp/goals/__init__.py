@@ -14,7 +14,8 @@ GOAL_SPACES: dict[str, type[GoalSpace]] = {"minigrid": MiniGridGoalSpace, "fetch
 #: goal spaces with settings, by name (for the YAML): MiniGrid keys that tell objects apart by colour (several keys)
 NAMED_GOAL_SPACES = {
     "minigrid_color": lambda: MiniGridGoalSpace(use_color=True),
-    # the minigrid entry's: colours related and objects in the way marked where the task's layouts call for them
+    # the minigrid entry's: colours related (a key to the door it opens) and objects in the way marked where the
+    # task's layouts call for them
     "minigrid_open_doors": lambda: MiniGridGoalSpace(use_color="auto", keep_doors_open=True, mark_blockers="auto",
                                                      count_blockers="auto"),
     # the entry's with colours related for any two objects, not only a key and a door (the entry's before)

@@ -279,7 +279,8 @@ class MiniGridGoalSpace(GoalSpace):
 
     :param use_color: distinguish objects by colour (needed when colours matter, e.g. several keys); ``"relative"``:
         by how their colours relate, not which they are: a key then holds whether the object in front has the
-        carried object's colour (:data:`SAME_COLOR`; a key and the door it opens), e.g.
+        carried object's colour, for the pairs ``color_relation`` relates (:data:`SAME_COLOR`; a key and the door it
+        opens), e.g.
         ``(key, RELATIVE, door, SAME_COLOR, locked)``, and :meth:`present` and :meth:`features` read colours the same
         way; ``"auto"``: relative where the task's grids hold keys of more than one colour (ObstructedMaze, whose
         door colours change with every layout, so that named colours make one sub-goal of each situation per pair of
