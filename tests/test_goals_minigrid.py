@@ -18,7 +18,7 @@ from sb3_hhp.goals.minigrid import blockers, encode_grid, grid_codes
 from sb3_hhp.hierarchy.encoders import GridInput
 from sb3_hhp.label.app import layout_goal_space
 from sb3_hhp.goals.minigrid import (BLOCKS, GOAL_OUT_OF_REACH, MAX_COUNTED_DOORS, N_OBJECTS, N_STATES, NO_GOAL_SQUARE,
-                                    OPEN_DOORS, RELATIVE, SAME_COLOR)
+                                    OPEN_DOORS, RELATIVE, SAME_COLOR, TARGET)
 from sb3_hhp.oracles import Label, MiniGridScriptedOracle, Query, scripted
 from sb3_hhp.oracles.registry import make_oracle
 from sb3_hhp.oracles.scripted import plan_keys, plan_steps
@@ -879,15 +879,21 @@ def _blocking_ball(base) -> tuple[tuple[int, int], int]:
     raise AssertionError("no ball blocks a door")
 
 
+def _unmarked_obstructed_maze() -> gym.Env:
+    """ObstructedMaze-1Q without the mission's ball marked (:data:`TARGET`, tested on its own below), so that a blocking
+    ball can be made the object to pick up."""
+    return MiniGridEgocentricObs(gym.make("MiniGrid-ObstructedMaze-1Q-v1"), mark_target=False)
+
+
 def test_mark_blockers_tells_a_ball_in_the_way_from_one_moved_aside() -> None:
     """With ``mark_blockers``, a key that faces a ball in front of a door gives it the state BLOCKS: put back where it
     was, the ball still blocks; dropped beside the agent after a turn, it does not. :meth:`present` marks such objects
     as the keys do, the features and the description tell them apart, and the scripted oracle's plan names the same
     keys as the goal space reads in the env."""
-    space = make_goal_space("minigrid_open_doors_blockers", wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1")))
+    space = make_goal_space("minigrid_open_doors_blockers", _unmarked_obstructed_maze())
     assert space.mark_blockers and space.keep_doors_open
     plain = MiniGridGoalSpace(keep_doors_open=True)
-    env = wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1"))
+    env = _unmarked_obstructed_maze()
     env.reset(seed=1)
     base = env.unwrapped
     ball = OBJECT_TO_IDX["ball"]
@@ -934,10 +940,10 @@ def test_mark_blockers_tells_a_ball_in_the_way_from_one_moved_aside() -> None:
 def test_count_blockers_counts_the_objects_in_the_way_in_the_features() -> None:
     """``count_blockers``: the features end their flags with a one-hot of how many objects block the way (0, 1, 2 or
     more), here ObstructedMaze-1Q's two balls in front of its locked doors, then one, then none; keys are unchanged."""
-    space = make_goal_space("minigrid_open_doors_blockers_counted", wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1")))
+    space = make_goal_space("minigrid_open_doors_blockers_counted", _unmarked_obstructed_maze())
     assert space.count_blockers and space.mark_blockers and space.keep_doors_open
     marked = MiniGridGoalSpace(keep_doors_open=True, mark_blockers=True)
-    env = wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1"))
+    env = _unmarked_obstructed_maze()
     env.reset(seed=1)
     base = env.unwrapped
     balls = [(x, y) for x in range(base.width) for y in range(base.height)
@@ -959,6 +965,79 @@ def test_count_blockers_counts_the_objects_in_the_way_in_the_features() -> None:
 
 # ---------------------------------------------------------------------- steps as they would have gone carrying the key
 
+
+
+def _facing(base, obj) -> tuple[tuple[int, int], int]:
+    """A free cell beside the object ``obj`` on the grid and the direction that faces it from there."""
+    x, y = (int(v) for v in obj.cur_pos)
+    for direction, (vx, vy) in enumerate(DIR_TO_VEC):
+        cell = (x - int(vx), y - int(vy))
+        if 0 <= cell[0] < base.width and 0 <= cell[1] < base.height and base.grid.get(*cell) is None:
+            return cell, direction
+    raise AssertionError("no free cell beside the object")
+
+
+def test_mark_target_tells_the_missions_ball_from_the_balls_moved_off_the_doors() -> None:
+    """ObstructedMaze-1Q draws green balls in front of its doors and the red ball the mission names: the observation
+    gives the red one the state TARGET (where a task draws one object of its kind, KeyCorridor, or names none, DoorKey,
+    nothing is marked); the keys, the features and the description tell it from a green ball; "task solved" is a choice
+    facing it and not facing a green ball; the scripted oracle's plan names the key the env's observation gives."""
+    assert grid_codes(gym.make("MiniGrid-ObstructedMaze-1Q-v1").unwrapped).target_twin
+    for env_id in ("MiniGrid-KeyCorridorS4R3-v0", "MiniGrid-DoorKey-8x8-v0"):
+        other = wrap_env(gym.make(env_id))
+        assert not other.mark_target and not grid_codes(other.unwrapped).target_twin
+        assert (other.reset(seed=0)[0][..., 2] != TARGET).all()
+        assert not make_goal_space("minigrid_open_doors", other).mark_target
+    env = wrap_env(gym.make("MiniGrid-ObstructedMaze-1Q-v1"))
+    space = make_goal_space("minigrid_open_doors", env)
+    assert env.mark_target and space.mark_target and TARGET in space.state_codes
+    unmarked = MiniGridGoalSpace(use_color="relative", keep_doors_open=True, mark_blockers=True, count_blockers=True,
+                                 mark_target=False)
+    obs, _ = env.reset(seed=1)
+    base, ball = env.unwrapped, OBJECT_TO_IDX["ball"]
+    assert np.count_nonzero((obs[..., 0] == ball) & (obs[..., 2] == TARGET)) == 1
+    assert np.count_nonzero(obs[..., 0] == ball) == 3  # and the two green balls, unmarked
+    _place(base, *_facing(base, base.obj))
+    red = env.observation(None)
+    cell, direction = _blocking_ball(base)
+    _place(base, cell, direction)
+    green = env.observation(None)
+    assert space.key(red) == (EMPTY, RELATIVE, ball, 0, TARGET) and space.key(green) == (EMPTY, RELATIVE, ball, 0, BLOCKS)
+    assert space.describe(space.key(red)) == "carrying nothing, facing the mission's ball"
+    assert (ball, 0, TARGET) in space.present(red) and unmarked.key(red) == (EMPTY, RELATIVE, ball, 0, 0)
+    assert space.choosable(space.key(red), SUCCESS_KEY, space.present(red))
+    assert not space.choosable(space.key(green), SUCCESS_KEY, space.present(green))
+    assert unmarked.choosable(unmarked.key(green), SUCCESS_KEY, unmarked.present(green))  # the green ball, unmarked
+    features = space.features(np.stack([red, green]))
+    assert features.shape[1] == unmarked.features(red).shape[1] + 1 + N_OBJECTS  # one more state, in front and present
+    front_state = slice(2 * N_OBJECTS, 2 * N_OBJECTS + N_STATES + 1)
+    assert features[0, front_state].argmax() == N_STATES and features[1, front_state].argmax() != N_STATES
+    # the sub-goal learners read the mark as one more indicator of the state channel
+    assert TARGET in space.learner_input(env.observation_space)["one_hot"][2]
+    # the cells "facing the mission's ball" concerns: the red ball alone
+    mask = space.concerned_cells(space.privileged(env), space.key(red))
+    assert mask.sum() == 1 and tuple(np.argwhere(mask)[0]) == tuple(int(v) for v in base.obj.cur_pos)
+    # the oracle: turned away from the red ball, the plan turns to it and picks it up, under the env's own key
+    oracle = make_oracle("scripted", space, env.observation_space)
+    assert oracle.goal_space.mark_target
+    cell, direction = _facing(base, base.obj)
+    _place(base, cell, (direction + 1) % 4)
+    keys = plan_keys(space.privileged(env), oracle.goal_space)
+    assert keys == [(EMPTY, RELATIVE, ball, 0, TARGET), SUCCESS_KEY]
+    assert plan_keys(space.privileged(env), unmarked) == [(EMPTY, RELATIVE, ball, 0, 0), SUCCESS_KEY]
+    obs, *_ = env.step(int(Actions.left))
+    assert space.key(obs) == keys[0]
+    with pytest.raises(ValueError, match="mark_target"):
+        MiniGridGoalSpace(mark_target="yes")
+    with pytest.raises(ValueError, match="mark_target"):
+        MiniGridEgocentricObs(gym.make("MiniGrid-ObstructedMaze-1Q-v1"), mark_target="yes")
+    # a goal space pickled before the option (a model saved then) reads no mark, as it did
+    older = MiniGridGoalSpace(use_color="relative")
+    del older.mark_target, older.target_from_env
+    assert not older.mark_target and older.key(red) == (EMPTY, RELATIVE, ball, 0, 0)
+    assert (ball, 0, 0) in older.present(red)
+    assert older.features(red).shape == MiniGridGoalSpace(use_color="relative", mark_target=False).features(red).shape
+    env.close()
 
 def _steps_both_ways(seed: int, n: int = 60) -> tuple[list, list]:
     """Random turns and steps on DoorKey-8x8 (seed ``seed``) twice from the same start: with empty hands, and with the

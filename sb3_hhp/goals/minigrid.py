@@ -28,7 +28,7 @@ from scipy import ndimage
 from stable_baselines3.common.monitor import Monitor
 from minigrid.core.constants import COLOR_TO_IDX, IDX_TO_OBJECT, OBJECT_TO_IDX, STATE_TO_IDX
 from minigrid.core.grid import Grid
-from minigrid.core.world_object import Box
+from minigrid.core.world_object import Box, WorldObj
 from minigrid.core.actions import Actions
 from minigrid.minigrid_env import MiniGridEnv
 
@@ -58,6 +58,10 @@ OPEN_DOORS = "open doors"
 #: with ``mark_blockers``, the state a key gives a key, ball or box in front that blocks the way (:func:`blockers`;
 #: MiniGrid's states of doors are 0-2, objects one picks up have none of their own)
 BLOCKS = 3
+#: the state :class:`MiniGridEgocentricObs` gives the mission's object (the env's ``obj``: ObstructedMaze's ball,
+#: KeyCorridor's, UnlockPickup's box) where its task draws other objects of that kind (:func:`grid_codes`), and so keys
+#: of facing it: "facing the mission's ball" is then another sub-goal than facing a ball moved off a door
+TARGET = 4
 #: with ``count_open_doors``, the features tell 0 .. MAX_COUNTED_DOORS - 1 open doors apart (more count as the last)
 MAX_COUNTED_DOORS = 8
 #: with ``count_blockers``, the features' count of objects that block the way stops here (its last value: this many
@@ -68,7 +72,7 @@ MAX_COUNTED_BLOCKERS = 3
 RELATIVE = -1
 #: with ``use_color`` "relative": the object in front has the carried object's colour (a key and the door it opens)
 SAME_COLOR = 1
-MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, 2)  # object ids 0..10, colours 0..5, states 0..2
+MAX_ENCODING = max(max(OBJECT_TO_IDX.values()), 5, TARGET)  # object ids 0..10, colours 0..5, states 0..2 and TARGET
 N_OBJECTS, N_COLORS, N_STATES = len(OBJECT_TO_IDX), len(COLOR_TO_IDX), len(STATE_TO_IDX)
 #: the frame drawn around the cells a sub-goal concerns (a colour MiniGrid's objects never have)
 HIGHLIGHT_RGB = (255, 64, 200)
@@ -98,13 +102,24 @@ class GridCodes(NamedTuple):
     #: agent's start): the task puts it there (a ball in front of a door), where elsewhere a key or ball drawn at
     #: random sometimes happens to
     blocked: bool = False
+    #: whether some layout held another object of the mission object's kind (the env's ``obj``: ObstructedMaze's
+    #: balls moved off the doors beside the ball to pick up): :class:`MiniGridEgocentricObs` then marks the mission's
+    #: object (:data:`TARGET`)
+    target_twin: bool = False
+
+
+def mission_object(base: MiniGridEnv) -> Optional[tuple[int, int]]:
+    """The (object, colour) codes of the object the env's mission names, where the env keeps it as ``obj``
+    (KeyCorridor, ObstructedMaze, UnlockPickup: the object to pick up), else None."""
+    target = getattr(base, "obj", None)
+    return None if not isinstance(target, WorldObj) else (OBJECT_TO_IDX[target.type], COLOR_TO_IDX[target.color])
 
 
 def grid_codes(base: MiniGridEnv, layouts: int = BOUND_LAYOUTS) -> GridCodes:
     """What the grids of ``base``'s task hold, over ``layouts`` layouts drawn by a copy of it (``base`` itself is not
     reset)."""
     env = copy.deepcopy(base)
-    types, states, key_colors, blocked = set(), set(), 0, True
+    types, states, key_colors, blocked, twin = set(), set(), 0, True, False
     for seed in range(layouts):
         env.reset(seed=seed)
         grid = encode_grid(env.grid)  # [x, y], as agent_pos
@@ -117,7 +132,10 @@ def grid_codes(base: MiniGridEnv, layouts: int = BOUND_LAYOUTS) -> GridCodes:
             if kind == DOOR:
                 states.update({CLOSED, state} - {OPEN})
         key_colors = max(key_colors, len({obj.color for obj in objects if obj.type == "key"}))
-    return GridCodes(sorted(types), sorted(states), key_colors, blocked)
+        target = getattr(env, "obj", None)
+        if isinstance(target, WorldObj) and any(obj is not target and obj.type == target.type for obj in objects):
+            twin = True
+    return GridCodes(sorted(types), sorted(states), key_colors, blocked, twin)
 
 
 #: the paper's MultiRoom task, which MiniGrid does not register: 12 rooms of at most 10x10 cells (a 25x25 grid,
@@ -138,6 +156,15 @@ def find_minigrid(env: gym.Env) -> Optional[MiniGridEnv]:
     """The MiniGrid env underneath ``env`` (None when it is not a MiniGrid task)."""
     base = getattr(env, "unwrapped", env)
     return base if isinstance(base, MiniGridEnv) else None
+
+
+def _find_wrapper(env: gym.Env, kind: type) -> Optional[gym.Wrapper]:
+    """The first wrapper of class ``kind`` in ``env``'s chain of wrappers (None: there is none)."""
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, kind):
+            return env
+        env = env.env
+    return None
 
 
 def _beside(mask: np.ndarray) -> np.ndarray:
@@ -205,11 +232,20 @@ def egocentric_size(width: int, height: int) -> int:
     return max(1, 2 * max(width, height) - 3)
 
 
-def egocentric_grid(base: MiniGridEnv) -> np.ndarray:
+def mark_target(codes: np.ndarray, target: Optional[Sequence[int]]) -> np.ndarray:
+    """``codes`` (..., 3) with the state :data:`TARGET` on the cells that hold the object ``target`` ((object,
+    colour) codes; None: unchanged), in place."""
+    if target is not None:
+        codes[(codes[..., 0] == target[0]) & (codes[..., 1] == target[1]), 2] = TARGET
+    return codes
+
+
+def egocentric_grid(base: MiniGridEnv, target: Optional[Sequence[int]] = None) -> np.ndarray:
     """The full grid encoding (W, H, 3) rotated so the agent is at the centre facing up, in a square canvas of side
     :func:`egocentric_size` indexed ``[x, y]``; cells outside the grid are 0 ("unseen"). (On a grid without walls,
-    cells beyond the canvas would be cut off.)"""
-    full = encode_grid(base.grid)  # (W, H, 3), [x, y]
+    cells beyond the canvas would be cut off.) With ``target`` ((object, colour) codes), the cells that hold that
+    object have the state :data:`TARGET` (:func:`mark_target`)."""
+    full = mark_target(encode_grid(base.grid), target)  # (W, H, 3), [x, y]
     ax, ay = (int(v) for v in base.agent_pos)
     full[ax, ay] = base.carrying.encode() if base.carrying is not None else _EMPTY_CELL
     size = egocentric_size(base.width, base.height)
@@ -231,13 +267,20 @@ class MiniGridEgocentricObs(gym.ObservationWrapper):
     ``MlpPolicy`` sees the integer codes directly.
 
     :param env: a MiniGrid env
+    :param mark_target: give the object the mission names (:func:`mission_object`) the state :data:`TARGET`;
+        ``"auto"``: where the task draws other objects of its kind (:func:`grid_codes`: ObstructedMaze, whose balls moved
+        off the doors look like the ball to pick up; docs/design_decisions.rst)
     """
 
-    def __init__(self, env: gym.Env) -> None:
+    def __init__(self, env: gym.Env, mark_target: Union[bool, str] = "auto") -> None:
         super().__init__(env)
         base = find_minigrid(env)
         if base is None:
             raise ValueError(f"MiniGridEgocentricObs needs a MiniGrid env, got {env}")
+        if not isinstance(mark_target, bool) and mark_target != "auto":
+            raise ValueError(f"mark_target must be True, False or 'auto' (where the task draws other objects of the "
+                             f"mission object's kind), got {mark_target!r}")
+        self.mark_target = grid_codes(base).target_twin if mark_target == "auto" else mark_target
         size = egocentric_size(base.width, base.height)
         self.observation_space = spaces.Box(0, MAX_ENCODING, (size, size, 3), np.uint8)
         if _reads_no_minigrid_obs(env, base):
@@ -246,7 +289,8 @@ class MiniGridEgocentricObs(gym.ObservationWrapper):
             base.gen_obs = _BlankObs(base)
 
     def observation(self, observation: Any) -> np.ndarray:
-        return egocentric_grid(self.env.unwrapped)
+        base = self.env.unwrapped
+        return egocentric_grid(base, mission_object(base) if self.mark_target else None)
 
 
 #: wrappers that pass observations through without reading them
@@ -307,6 +351,12 @@ class MiniGridGoalSpace(GoalSpace):
         a key and a door only (the key opens the door of its colour; other pairs of colours change nothing a step
         does, and each would make one more sub-goal of a situation), "any" every two objects with colours
         (docs/design_decisions.rst)
+    :param mark_target: read the mission's object as the observation marks it (:data:`TARGET`,
+        :class:`MiniGridEgocentricObs`): a key of facing it, e.g. ``(nothing, ball, TARGET)``, is then a sub-goal of its
+        own, and "task solved", in a grid without a goal square, is a choice only facing it (ObstructedMaze, where the
+        learner of "task solved" picked up the balls moved off the doors; docs/design_decisions.rst); ``"auto"``: as the
+        env's :class:`MiniGridEgocentricObs` marks it (where the task draws other objects of its kind), read when the
+        goal space is bound to the env (:meth:`bind`; off until then)
     :param count_blockers: the features (what the predictor, and with ``meta_input`` features the meta-controller,
         read) also hold how many objects on the canvas block the way (0, 1, 2 or more; :func:`blockers`): whether the
         key in hand goes to its door or is put down to move a ball first depends on it (ObstructedMaze,
@@ -325,10 +375,13 @@ class MiniGridGoalSpace(GoalSpace):
     count_open_doors = False
     mark_blockers = False
     count_blockers = False
+    mark_target = False
+    target_from_env = False  # mark_target "auto": set by bind
 
     def __init__(self, use_color: Union[bool, str] = False, tile_size: int = 16, keep_doors_open: bool = False,
                  count_open_doors: bool = False, mark_blockers: Union[bool, str] = False,
-                 count_blockers: Union[bool, str] = False, color_relation: str = "opens") -> None:
+                 count_blockers: Union[bool, str] = False, color_relation: str = "opens",
+                 mark_target: Union[bool, str] = "auto") -> None:
         if tile_size < 1:
             raise ValueError(f"tile_size must be >= 1, got {tile_size}")
         if not isinstance(use_color, bool) and use_color not in ("auto", "relative"):
@@ -338,6 +391,9 @@ class MiniGridGoalSpace(GoalSpace):
             if not isinstance(value, bool) and value != "auto":
                 raise ValueError(f"{name} must be True, False or 'auto' (where the env's layouts put an object in the "
                                  f"way), got {value!r}")
+        if not isinstance(mark_target, bool) and mark_target != "auto":
+            raise ValueError(f"mark_target must be True, False or 'auto' (as the env's MiniGridEgocentricObs marks the "
+                             f"mission's object), got {mark_target!r}")
         if color_relation not in _RELATED_TABLES:
             raise ValueError(f"color_relation must be 'opens' (a key and the door of its colour) or 'any' (any two "
                              f"objects with colours), got {color_relation!r}")
@@ -351,6 +407,8 @@ class MiniGridGoalSpace(GoalSpace):
         self.blockers_from_env = (mark_blockers == "auto", count_blockers == "auto")
         self.mark_blockers = mark_blockers is True
         self.count_blockers = count_blockers is True
+        self.target_from_env = mark_target == "auto"
+        self.mark_target = mark_target is True
 
     def action_mask(self, obs: np.ndarray) -> Optional[np.ndarray]:
         """With ``keep_doors_open``: every MiniGrid action but ``toggle`` in front of an open door (which would close it)."""
@@ -379,9 +437,13 @@ class MiniGridGoalSpace(GoalSpace):
         """Record which object types and states the env's grids hold (:func:`grid_codes`, from a copy of the env):
         what :meth:`learner_input` gives the sub-goal learners to read as indicators; with ``use_color`` "auto",
         whether colours are read (as they relate: "relative"); with ``mark_blockers`` "auto", whether objects in the
-        way are marked (and with ``count_blockers`` "auto", counted)."""
+        way are marked (and with ``count_blockers`` "auto", counted); with ``mark_target`` "auto", whether the env's
+        observation marks the mission's object (its :class:`MiniGridEgocentricObs`; without one, where it would)."""
         codes = grid_codes(find_minigrid(env))
-        self.object_codes, self.state_codes = codes.types, codes.states
+        if self.target_from_env:
+            wrapper = _find_wrapper(env, MiniGridEgocentricObs)
+            self.mark_target = codes.target_twin if wrapper is None else wrapper.mark_target
+        self.object_codes, self.state_codes = codes.types, codes.states + ([TARGET] if self.mark_target else [])
         if self.color_from_env:
             self.use_color = self.relative_color = codes.key_colors > 1
         mark, count = self.blockers_from_env
@@ -443,6 +505,8 @@ class MiniGridGoalSpace(GoalSpace):
         (whether the object in front blocks the way, :func:`blockers`) where ``mark_blockers`` does. :meth:`~sb3_hhp.goals.base.GoalSpace.key`
         reads them from an observation, the scripted oracle from the grid its search changes."""
         state = int(front[2])
+        if state == TARGET and not self.mark_target:  # the observation marks what this goal space does not read
+            state = 0
         if self.mark_blockers and front[0] in PICKABLE and blocks is not None and blocks():
             state = BLOCKS
         if self.relative_color:
@@ -520,6 +584,8 @@ class MiniGridGoalSpace(GoalSpace):
         rows, ys, xs = np.nonzero(near & _INTERACTIVE_TABLE[objects])
         columns = [0, 1, 2] if self.use_color else [0, 2]
         cells = self.relate_colors(obs)[rows, ys, xs][:, columns]
+        if not self.mark_target:  # the observation marks what this goal space does not read
+            cells[cells[:, -1] == TARGET, -1] = 0
         if self.mark_blockers:  # as the keys name them: objects one picks up that block the way
             cells[blockers(objects, np.full((n, 2), center))[rows, ys, xs], -1] = BLOCKS
         found: list[list[tuple]] = [[] for _ in range(n)]
@@ -569,8 +635,9 @@ class MiniGridGoalSpace(GoalSpace):
         if goal_key == SUCCESS_KEY:
             if present is None:
                 return True
-            if NO_GOAL_SQUARE in present:  # a pick-up of the object in front
-                return carried[0] == EMPTY and front[0] in PICKABLE
+            if NO_GOAL_SQUARE in present:  # a pick-up of the object in front (the mission's, where it is marked)
+                return carried[0] == EMPTY and front[0] in PICKABLE and (not self.mark_target
+                                                                          or key[2 * front_at] == TARGET)
             return GOAL_OUT_OF_REACH not in present  # not while the goal square is behind a locked door
         goal_carried, goal_front = goal_key[:front_at], goal_key[front_at : 2 * front_at]
         if goal_carried == carried:
@@ -608,11 +675,14 @@ class MiniGridGoalSpace(GoalSpace):
         center, rows = batch.shape[1] // 2, np.arange(len(batch))
         objects = np.clip(batch[..., 0], 0, N_OBJECTS - 1)
         colors = np.clip(batch[..., 1], 0, N_COLORS - 1)
-        states = np.clip(batch[..., 2], 0, N_STATES - 1)
+        # MiniGrid's states, and with mark_target one more for the mission's object (TARGET)
+        n_states = N_STATES + 1 if self.mark_target else N_STATES
+        states = np.where(batch[..., 2] == TARGET, n_states - 1 if self.mark_target else 0,
+                          np.clip(batch[..., 2], 0, N_STATES - 1))
         parts = [
             (objects[:, center, center], N_OBJECTS),
             (objects[:, center, center - 1], N_OBJECTS),
-            (states[:, center, center - 1], N_STATES),
+            (states[:, center, center - 1], n_states),
         ]
         if self.relative_color:  # whether the object in front has the carried object's colour
             parts.append(((batch[:, center, center - 1, 1] == SAME_COLOR).astype(np.int64), 2))
@@ -627,13 +697,13 @@ class MiniGridGoalSpace(GoalSpace):
             if self.count_blockers:  # how many objects block the way, anywhere
                 counts = np.count_nonzero(blocking, axis=(1, 2))
                 parts.append((np.minimum(counts, MAX_COUNTED_BLOCKERS - 1), MAX_COUNTED_BLOCKERS))
-        size = sum(n for _, n in parts) + N_OBJECTS * N_STATES
+        size = sum(n for _, n in parts) + N_OBJECTS * n_states
         out = np.zeros((len(batch), size), dtype=np.float32)
         offset = 0
         for values, n in parts:
             out[rows, offset + values] = 1.0
             offset += n
-        pairs = (objects * N_STATES + states).reshape(len(batch), -1)
+        pairs = (objects * n_states + states).reshape(len(batch), -1)
         out[rows[:, None], offset + pairs] = 1.0  # presence of each (object, state) in the grid
         return out
 
@@ -708,6 +778,8 @@ class MiniGridGoalSpace(GoalSpace):
         def of_kind(kind: int, color: Optional[int]) -> np.ndarray:
             return (objects == kind) & (True if color is None else colors == color)
 
+        if key[4 if self.use_color else 2] == TARGET and state.get("target") is not None:
+            front_color = int(state["target"][1])  # the mission's object, not the others of its kind
         mask = of_kind(front, front_color) if front in INTERACTIVE else np.zeros(objects.shape, dtype=bool)
         if carried != EMPTY and carried != now:
             mask |= of_kind(carried, carried_color)
@@ -759,6 +831,8 @@ class MiniGridGoalSpace(GoalSpace):
                 front_name += f" ({key[-1]} open in all)"
         elif state == BLOCKS:
             front_name += " that blocks the way"
+        elif state == TARGET:
+            front_name = f"the mission's {front_name}"
         if of_its_color:
             front_name += " of its colour"
         carried_name = "nothing" if carried == EMPTY else IDX_TO_OBJECT.get(carried, str(carried))

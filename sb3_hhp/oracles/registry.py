@@ -51,7 +51,8 @@ def make_oracle(
             from sb3_hhp.oracles.scripted import MiniGridScriptedOracle
 
             matched = {option: getattr(goal_space, option, False)  # the goal space's key options, which it must match
-                       for option in ("count_open_doors", "mark_blockers", "color_relation")}
+                       for option in ("count_open_doors", "mark_blockers", "color_relation",
+                                     "mark_target")}
             matched["use_color"] = goal_space.color_option
             oracle: Oracle = MiniGridScriptedOracle(**matched, **_checked(MiniGridScriptedOracle, name, kwargs,
                                                                           tuple(matched)))

@@ -23,7 +23,7 @@ import numpy as np
 from minigrid.core.constants import DIR_TO_VEC, OBJECT_TO_IDX, STATE_TO_IDX
 
 from sb3_hhp.goals.base import SUCCESS_KEY
-from sb3_hhp.goals.minigrid import BOX as _BOX, EMPTY, PICKABLE as _PICKABLE, MiniGridGoalSpace, blockers
+from sb3_hhp.goals.minigrid import BOX as _BOX, EMPTY, PICKABLE as _PICKABLE, MiniGridGoalSpace, blockers, mark_target
 from sb3_hhp.oracles.base import Label, Oracle, Query
 
 _WALKABLE = {OBJECT_TO_IDX[name] for name in ("empty", "floor", "goal")}
@@ -72,7 +72,10 @@ def plan_steps(
     if not weight >= 1.0:
         raise ValueError(f"weight must be >= 1, got {weight}")
     goal_space = goal_space or MiniGridGoalSpace()
+    target = tuple(info["target"]) if info.get("target") is not None else None
     grid0 = np.asarray(info["grid"], dtype=np.uint8)
+    if goal_space.mark_target:  # the keys name the mission's object as the observation marks it
+        grid0 = mark_target(grid0.copy(), target)
     width, height = grid0.shape[:2]
     cells = [[tuple(int(v) for v in grid0[x, y]) for y in range(height)] for x in range(width)]
     # a box's code carries what it holds after its own three numbers, so that its contents travel with it
@@ -81,7 +84,6 @@ def plan_steps(
     carrying0 = tuple(int(v) for v in info["carrying"]) if info.get("carrying") is not None else _NO_OBJECT
     if carrying0[0] == _BOX:
         carrying0 += _held(info.get("carrying_holds"))
-    target = tuple(info["target"]) if info.get("target") is not None else None
     deadline = None if max_seconds is None else time.perf_counter() + max_seconds
 
     def cell(x: int, y: int, changes: tuple) -> tuple:
@@ -235,6 +237,7 @@ class MiniGridScriptedOracle(Oracle):
     :param count_open_doors: must match the goal space's ``count_open_doors``
     :param mark_blockers: must match the goal space's ``mark_blockers``
     :param color_relation: must match the goal space's ``color_relation``
+    :param mark_target: must match the goal space's ``mark_target``
     :param name: the annotator name recorded with its answers
     :param max_seconds: most seconds the plan of one question may take (answers run on the training thread): the
         first quarter searches a shortest plan; when none is found by then, the rest searches one at most
@@ -245,14 +248,15 @@ class MiniGridScriptedOracle(Oracle):
 
     def __init__(self, use_color: Union[bool, str] = False, name: str = "scripted", max_seconds: float = 2.0,
                  fallback_weight: float = 3.0, count_open_doors: bool = False, mark_blockers: bool = False,
-                 color_relation: str = "opens") -> None:
+                 color_relation: str = "opens", mark_target: bool = False) -> None:
         super().__init__(name)
         if not max_seconds > 0:
             raise ValueError(f"max_seconds must be > 0, got {max_seconds}")
         if not fallback_weight >= 1:
             raise ValueError(f"fallback_weight must be >= 1, got {fallback_weight}")
         self.goal_space = MiniGridGoalSpace(use_color=use_color, count_open_doors=count_open_doors,
-                                            mark_blockers=mark_blockers, color_relation=color_relation)
+                                            mark_blockers=mark_blockers, color_relation=color_relation,
+                                            mark_target=mark_target)
         self.max_seconds = float(max_seconds)
         self.fallback_weight = float(fallback_weight)
         self.last_plan_weight: Optional[float] = None  # which search found the last plan (1: a shortest one)
