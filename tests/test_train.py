@@ -313,8 +313,9 @@ def test_hhp_is_registered_with_rl_zoo() -> None:
 DERIVED_INPUTS = {
     "MiniGrid-DoorKey-16x16-v0": (15, (7, 7, 3), 4 + 2),  # walls, doors, keys, goal squares; closed, locked
     "MiniGrid-KeyCorridorS4R3-v0": (None, None, 4 + 2),  # the 15 x 15 inner canvas; walls, doors, keys, balls
-    # boxes too, and the keys they hold; whether a cell has the carried object's colour (keys of two colours)
-    "MiniGrid-ObstructedMaze-1Q-v1": (15, (7, 7, 3), 5 + 1 + 2),
+    # boxes too, and the keys they hold; whether a cell has the carried object's colour (keys of two colours); the
+    # mission's ball marked (green balls beside it)
+    "MiniGrid-ObstructedMaze-1Q-v1": (15, (7, 7, 3), 5 + 1 + 2 + 1),
     "MiniGrid-MultiRoom-N12-S10-v0": (15, (11, 11, 3), 3 + 1),  # walls, doors, goal squares; closed only
 }
 
