@@ -1312,3 +1312,17 @@ def test_relative_colours_give_obstructedmaze_the_few_situations_of_its_plans() 
     marked = drawer.concerned_cells(state, (KEY, RELATIVE, DOOR, SAME_COLOR, LOCKED))
     assert marked[tuple(locked[0])] and not marked[tuple(locked[1])]
     env.close()
+
+
+def test_mark_target_auto_on_an_env_that_cannot_be_copied_reads_its_first_layout() -> None:
+    """``mark_target="auto"`` reads a few layouts from a copy of the env; an env that cannot be copied (it holds a lock)
+    is still wrapped, and decides from its first layout: ObstructedMaze-1Q's red ball is marked, DoorKey's nothing."""
+    import threading
+
+    for env_id, marked in (("MiniGrid-ObstructedMaze-1Q-v1", True), ("MiniGrid-DoorKey-5x5-v0", False)):
+        raw = gym.make(env_id)
+        raw.unwrapped.lock = threading.Lock()
+        env = MiniGridEgocentricObs(raw)
+        assert env.mark_target is None
+        obs, _ = env.reset(seed=1)
+        assert env.mark_target is marked and bool((obs[..., 2] == TARGET).any()) is marked

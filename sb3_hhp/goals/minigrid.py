@@ -14,7 +14,9 @@ convention). Every fact of a key can be read off the observation, so ``predict``
 sub-goal is reached without access to the environment.
 """
 
+import contextlib
 import copy
+import pickle
 from collections.abc import Callable, Hashable, Sequence
 from itertools import chain
 from typing import Any, NamedTuple, Optional, Union
@@ -108,6 +110,19 @@ class GridCodes(NamedTuple):
     target_twin: bool = False
 
 
+def _objects(base: MiniGridEnv) -> list[WorldObj]:
+    """The objects of ``base``'s grid, the carried one and those its boxes hold."""
+    objects = [obj for obj in [*base.grid.grid, base.carrying] if obj is not None]
+    return objects + [obj.contains for obj in objects if isinstance(obj, Box) and obj.contains is not None]
+
+
+def _has_target_twin(base: MiniGridEnv, objects: Optional[list[WorldObj]] = None) -> bool:
+    """Whether ``base``'s layout holds another object of the kind of the mission's (``obj``)."""
+    target = getattr(base, "obj", None)
+    return isinstance(target, WorldObj) and any(obj is not target and obj.type == target.type
+                                                for obj in (_objects(base) if objects is None else objects))
+
+
 def mission_object(base: MiniGridEnv) -> Optional[tuple[int, int]]:
     """The (object, colour) codes of the object the env's mission names, where the env keeps it as ``obj``
     (KeyCorridor, ObstructedMaze, UnlockPickup: the object to pick up), else None."""
@@ -124,17 +139,14 @@ def grid_codes(base: MiniGridEnv, layouts: int = BOUND_LAYOUTS) -> GridCodes:
         env.reset(seed=seed)
         grid = encode_grid(env.grid)  # [x, y], as agent_pos
         blocked = blocked and bool(blockers(grid[None, ..., 0], [tuple(env.agent_pos)]).any())
-        objects = [obj for obj in [*env.grid.grid, env.carrying] if obj is not None]
-        objects += [obj.contains for obj in objects if isinstance(obj, Box) and obj.contains is not None]
+        objects = _objects(env)
         for obj in objects:
             kind, _, state = (int(code) for code in obj.encode())
             types.add(kind)
             if kind == DOOR:
                 states.update({CLOSED, state} - {OPEN})
         key_colors = max(key_colors, len({obj.color for obj in objects if obj.type == "key"}))
-        target = getattr(env, "obj", None)
-        if isinstance(target, WorldObj) and any(obj is not target and obj.type == target.type for obj in objects):
-            twin = True
+        twin = twin or _has_target_twin(env, objects)
     return GridCodes(sorted(types), sorted(states), key_colors, blocked, twin)
 
 
@@ -280,7 +292,11 @@ class MiniGridEgocentricObs(gym.ObservationWrapper):
         if not isinstance(mark_target, bool) and mark_target != "auto":
             raise ValueError(f"mark_target must be True, False or 'auto' (where the task draws other objects of the "
                              f"mission object's kind), got {mark_target!r}")
-        self.mark_target = grid_codes(base).target_twin if mark_target == "auto" else mark_target
+        #: None until the first observation where "auto" could not copy the env (it holds what cannot be copied)
+        self.mark_target: Optional[bool] = mark_target if isinstance(mark_target, bool) else None
+        if mark_target == "auto":
+            with contextlib.suppress(TypeError, copy.Error, pickle.PicklingError):
+                self.mark_target = grid_codes(base).target_twin
         size = egocentric_size(base.width, base.height)
         self.observation_space = spaces.Box(0, MAX_ENCODING, (size, size, 3), np.uint8)
         if _reads_no_minigrid_obs(env, base):
@@ -290,6 +306,8 @@ class MiniGridEgocentricObs(gym.ObservationWrapper):
 
     def observation(self, observation: Any) -> np.ndarray:
         base = self.env.unwrapped
+        if self.mark_target is None:  # "auto" on an env that cannot be copied: read from its first layout
+            self.mark_target = _has_target_twin(base)
         return egocentric_grid(base, mission_object(base) if self.mark_target else None)
 
 
@@ -442,7 +460,8 @@ class MiniGridGoalSpace(GoalSpace):
         codes = grid_codes(find_minigrid(env))
         if self.target_from_env:
             wrapper = _find_wrapper(env, MiniGridEgocentricObs)
-            self.mark_target = codes.target_twin if wrapper is None else wrapper.mark_target
+            marks = None if wrapper is None else wrapper.mark_target
+            self.mark_target = codes.target_twin if marks is None else marks
         self.object_codes, self.state_codes = codes.types, codes.states + ([TARGET] if self.mark_target else [])
         if self.color_from_env:
             self.use_color = self.relative_color = codes.key_colors > 1
