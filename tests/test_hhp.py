@@ -1549,6 +1549,26 @@ def test_steps_per_update_caps_the_meta_controllers_updates(monkeypatch, every: 
     assert calls == updates
 
 
+def test_choices_per_update_gives_episodes_of_many_choices_more_updates(monkeypatch) -> None:
+    """With meta_kwargs choices_per_update C, at least one update per C choices stored in the rollout, the fraction
+    kept for the next; N_opt per episode where that is more."""
+    model = make_model(EMPTY, batch_size=8, meta_kwargs=dict(n_opt=4, choices_per_update=4))
+    calls: list = []
+    monkeypatch.setattr(DoubleDQN, "train", lambda self, gradient_steps, batch_size=100: calls.append(gradient_steps))
+    monkeypatch.setattr(model.replay_buffer, "size", lambda: 100)
+    # (episodes, choices): 10 / 4 = 2.5 -> 2 < 4; 0.5 + 60 / 4 -> 15 > 4; 0.5 + 6 / 4 = 2 < 8
+    for episodes, choices in [(1, 10), (1, 60), (2, 6)]:
+        model._rollout_episodes, model._rollout_steps, model._rollout_choices = episodes, 10 * choices, choices
+        model.train(model.gradient_steps, model.batch_size)
+    assert calls == [4, 15, 8]
+    with pytest.raises(ValueError, match=r"meta_kwargs\['choices_per_update'\] must be an integer >= 1"):
+        make_model(EMPTY, meta_kwargs=dict(choices_per_update=0))
+    monkeypatch.undo()
+    counted = make_model(EMPTY, batch_size=8, learning_starts=0, meta_kwargs=dict(n_opt=1, choices_per_update=1))
+    counted.learn(600)
+    assert counted._n_updates >= counted.replay_buffer.size() - 8  # one update per choice once a batch was stored
+
+
 def test_steps_per_update_bounds_a_runs_meta_updates() -> None:
     """Over a run, the meta-controller's updates stay within its primitive steps over K (after its buffer held a
     batch), where N_opt per episode does more on a room solved in a few steps."""

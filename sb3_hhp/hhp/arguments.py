@@ -66,12 +66,14 @@ LEARNER_INPUTS = ("view", "overview", "one_hot")
 #: ``gamma`` discounts (``discount``): each sub-goal choice ("choice", the paper's DQN over choices) or each primitive
 #: step ("steps": an option's return is sum_i gamma^i r_i and its bootstrap gamma^k after its k steps, the semi-MDP's);
 #: ``steps_per_update``: at most one update per this many primitive steps of all envs (None: N_opt after every
-#: episode, however short, Algorithm 1; design decisions: the meta-controller's update rate)
+#: episode, however short, Algorithm 1; design decisions: the meta-controller's update rate); ``choices_per_update``: at
+#: least one update per this many sub-goal choices stored (None: N_opt per episode alone; long episodes of many choices
+#: then get more updates)
 META_DEFAULTS: dict[str, Any] = dict(n_opt=4, target_update_interval=500, tau=1.0, exploration_initial_eps=1.0,
                                      max_grad_norm=10.0, stats_window_size=100, capacity=16, input="auto",
                                      center_bonus="max", exact_bonus=False, success_bonus="predicted",
                                      mask_subgoals=True, break_cycles=True, discount="choice",
-                                     steps_per_update=None)
+                                     steps_per_update=None, choices_per_update=None)
 #: each ``*_kwargs`` argument grouped over defaults: its defaults and the keys it accepts (None: the defaults' keys)
 GROUPED_ARGUMENTS: dict[str, tuple[dict[str, Any], Optional[frozenset]]] = {
     "query_kwargs": (QUERY_DEFAULTS, None),
@@ -135,6 +137,10 @@ def check_grouped(query: dict[str, Any], predictor: dict[str, Any], discovery: d
     every = meta["steps_per_update"]
     if every is not None and (isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1):
         raise ValueError(f"meta_kwargs['steps_per_update'] must be an integer >= 1 (or None), got {every!r}")
+    per_choice = meta["choices_per_update"]
+    if per_choice is not None and (isinstance(per_choice, bool) or not isinstance(per_choice, (int, np.integer))
+                                   or per_choice < 1):
+        raise ValueError(f"meta_kwargs['choices_per_update'] must be an integer >= 1 (or None), got {per_choice!r}")
     if meta["capacity"] < 1:
         raise ValueError(f"meta_kwargs['capacity'] must be >= 1, got {meta['capacity']}")
 

@@ -445,9 +445,11 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         self.last_predictor_stats: dict[str, float] = {}
         self.last_confidences: np.ndarray = np.zeros(0)
         self._last_trace = EpisodeTrace()
-        self._rollout_episodes, self._rollout_steps = 0, 0
+        self._rollout_episodes, self._rollout_steps, self._rollout_choices = 0, 0, 0
         if not hasattr(self, "_update_allowance"):
             self._update_allowance = 0.0  # meta-controller updates the steps so far allow (meta_kwargs steps_per_update)
+        if not hasattr(self, "_choice_allowance"):
+            self._choice_allowance = 0.0  # updates the choices so far ask for (meta_kwargs choices_per_update)
         if self.options is not None:
             self._attach(self.options)
 
@@ -519,10 +521,18 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         """N_opt meta-controller updates for each episode that just ended (Algorithm 1 lines 30-34), once the meta
         buffer holds a batch. With ``meta_kwargs["steps_per_update"]`` = K, no more than the rollout's primitive steps
         over K: short episodes (a solved task's, or every life lost on Atari) then do not each cost N_opt updates.
-        What a rollout does not use of its steps' allowance is kept for the next, up to its own N_opt per episode."""
+        What a rollout does not use of its steps' allowance is kept for the next, up to its own N_opt per episode.
+        With ``meta_kwargs["choices_per_update"]`` = C, at least one update per C choices stored (long episodes of many
+        choices then get more than N_opt), the fraction kept for the next rollout."""
         if self.replay_buffer is None or self.replay_buffer.size() < batch_size:
             return
         due = gradient_steps * max(1, self._rollout_episodes)
+        per_choice = self.meta_kwargs.get("choices_per_update")
+        if per_choice is not None:
+            self._choice_allowance = getattr(self, "_choice_allowance", 0.0) + self._rollout_choices / per_choice
+            by_choices = int(self._choice_allowance)
+            self._choice_allowance -= by_choices
+            due = max(due, by_choices)
         every = self.meta_kwargs["steps_per_update"]
         if every is not None:
             self._update_allowance = min(self._update_allowance + self._rollout_steps / every, float(due))
@@ -548,7 +558,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         options = self.options
         assert options is not None and options.obs is not None
         self.policy.set_training_mode(False)
-        num_collected_steps, num_collected_episodes = 0, 0
+        num_collected_steps, num_collected_episodes, num_collected_choices = 0, 0, 0
         callback.on_rollout_start()
         while num_collected_episodes == 0:
             waiting = options.waiting()
@@ -561,6 +571,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
             num_collected_steps += 1
             if ended:
                 self._store_choices(replay_buffer, ended)
+                num_collected_choices += len(ended)
             callback.update_locals(locals())
             if not callback.on_step():
                 self._score_ended_choices()
@@ -578,6 +589,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
                     self.dump_logs()
         self._score_ended_choices()
         self._rollout_episodes, self._rollout_steps = num_collected_episodes, num_collected_steps * options.num_envs
+        self._rollout_choices = num_collected_choices
         callback.on_rollout_end()
         return RolloutReturn(num_collected_steps * options.num_envs, num_collected_episodes, True)
 
