@@ -134,13 +134,10 @@ def check_grouped(query: dict[str, Any], predictor: dict[str, Any], discovery: d
                          "share_experience=True")
     if meta["n_opt"] < 1:
         raise ValueError(f"meta_kwargs['n_opt'] must be >= 1, got {meta['n_opt']}")
-    every = meta["steps_per_update"]
-    if every is not None and (isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1):
-        raise ValueError(f"meta_kwargs['steps_per_update'] must be an integer >= 1 (or None), got {every!r}")
-    per_choice = meta["choices_per_update"]
-    if per_choice is not None and (isinstance(per_choice, bool) or not isinstance(per_choice, (int, np.integer))
-                                   or per_choice < 1):
-        raise ValueError(f"meta_kwargs['choices_per_update'] must be an integer >= 1 (or None), got {per_choice!r}")
+    for name in ("steps_per_update", "choices_per_update"):
+        every = meta[name]
+        if every is not None and (isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1):
+            raise ValueError(f"meta_kwargs['{name}'] must be an integer >= 1 (or None), got {every!r}")
     if meta["capacity"] < 1:
         raise ValueError(f"meta_kwargs['capacity'] must be >= 1, got {meta['capacity']}")
 
