@@ -529,7 +529,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         due = gradient_steps * max(1, self._rollout_episodes)
         per_choice = self.meta_kwargs.get("choices_per_update")
         if per_choice is not None:
-            self._choice_allowance = getattr(self, "_choice_allowance", 0.0) + self._rollout_choices / per_choice
+            self._choice_allowance += self._rollout_choices / per_choice
             by_choices = int(self._choice_allowance)
             self._choice_allowance -= by_choices
             due = max(due, by_choices)
