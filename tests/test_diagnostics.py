@@ -196,6 +196,25 @@ def test_the_feature_ceiling_counts_per_alike_input_the_most_often_best_sub_goal
     assert result["conflicts"][0]["states"] == ["s", "t"] and result["conflicts"][0]["plan"] == {"g0": 2, "g1": 1}
 
 
+def test_departures_count_the_choices_off_the_plan_per_state_plan_and_choice() -> None:
+    """oracle_choices.py: a chooser's choice among the plan's best ones (a tie counts for either) is no departure;
+    the others are counted per (state, the plan's best, the choice), most frequent first, for each chooser apart."""
+    from benchmarks.diagnostics.oracle_choices import departures
+
+    def record(state: str, best: tuple, predictor: int, meta: int) -> dict:
+        return dict(state=state, best=best, predictor=predictor, meta=meta)
+
+    records = [record("s", (0,), 1, 0), record("s", (0,), 1, 2), record("s", (0,), 2, 0),
+               record("t", (1, 2), 2, 0), record("t", (1,), 0, 1)]
+    describe = lambda goal: f"g{goal}"  # noqa: E731
+    assert departures(records, "predictor", describe) == [
+        dict(state="s", plan="g0", chosen="g1", count=2), dict(state="s", plan="g0", chosen="g2", count=1),
+        dict(state="t", plan="g1", chosen="g0", count=1)]
+    assert departures(records, "meta", describe) == [
+        dict(state="s", plan="g0", chosen="g2", count=1), dict(state="t", plan="g1 / g2", chosen="g0", count=1)]
+    assert departures(records, "meta", describe, top=1) == [dict(state="s", plan="g0", chosen="g2", count=1)]
+
+
 def test_placement_answers_by_plan_rank_and_names_each_rules_pair() -> None:
     """predictor_placement.py: the oracle prefers the sub-goal earlier in its plan and ties teach nothing; ``plan``
     names the plan's choice against another choosable sub-goal, ``top2`` the predictor's two best choosable ones."""

@@ -48,7 +48,8 @@ def oracle_chooser(model: HhP, oracle: Any, env: gym.Env, planned: list, agree: 
     predictor's best-scored sub-goal (``predictor``), among the same ones, would have matched (a tie on the plan
     counts); appends to ``records`` (where given), for each choice the plan made, what the predictor reads of the
     state, the plan's ranks of every sub-goal (inf: not choosable), the choosable
-    sub-goals, the plan's best ones and the state's description (:func:`feature_ceiling` reads them)."""
+    sub-goals, the plan's best ones, the state's description (:func:`feature_ceiling` reads them) and the predictor's
+    and the meta-controller's choices (:func:`departures`)."""
     keys = [goal.key for goal in model.subgoals]
     goal_inputs = model.predictor_inputs(model.goal_obs)  # the sub-goals stay the same while the model plays
 
@@ -74,7 +75,8 @@ def oracle_chooser(model: HhP, oracle: Any, env: gym.Env, planned: list, agree: 
                 records.append(dict(inputs=reads, ranks=ranks.copy(),
                                     choosable=tuple(np.flatnonzero(np.isfinite(ranks)).tolist()),
                                     best=tuple(np.flatnonzero(ranks == ranks.min()).tolist()),
-                                    state=model.goal_space.describe(model.goal_space.key(batch[0]))))
+                                    state=model.goal_space.describe(model.goal_space.key(batch[0])),
+                                    predictor=int(scores.argmax()), meta=int(own[0])))
         return np.array([ranks.argmin()]) if planned[-1] else own
 
     return choose
@@ -102,6 +104,16 @@ def feature_ceiling(records: list, describe: Callable[[int], str] = str, top: in
                                   plan=dict(plans.most_common())))
     conflicts.sort(key=lambda c: c["matched"] - c["choices"])
     return dict(choices=len(records), groups=len(groups), ceiling=matched, conflicts=conflicts[:top])
+
+
+def departures(records: list, chooser: str, describe: Callable[[int], str] = str, top: int = 10) -> list:
+    """Where ``chooser`` ("predictor": its best score; "meta": the meta-controller) chose other than the plan, in
+    :func:`oracle_chooser`'s ``records``: the ``top`` most frequent (state, the plan's best, the chooser's choice),
+    each with its count, most frequent first."""
+    counts = Counter((record["state"], " / ".join(describe(goal) for goal in record["best"]), describe(record[chooser]))
+                     for record in records if record[chooser] not in record["best"])
+    return [dict(state=state, plan=plan, chosen=chosen, count=count)
+            for (state, plan, chosen), count in counts.most_common(top)]
 
 
 def predictor_chooser(model: HhP, planned: list) -> Callable:
@@ -200,6 +212,11 @@ def main() -> None:
         for conflict in ceiling["conflicts"]:
             print(f"  {conflict['matched']} of {conflict['choices']} at best; states {conflict['states']}; "
                   f"plan {conflict['plan']}")
+        departed = {chooser: departures(records, chooser, describe) for chooser in ("predictor", "meta")}
+        for chooser, name in (("predictor", "the predictor's best score"), ("meta", "the meta-controller")):
+            print(f"where {name} chose other than the plan (most frequent first): count, state: plan's -> its")
+            for row in departed[chooser]:
+                print(f"  {row['count']:4d}  {row['state']}: {row['plan']} -> {row['chosen']}")
     print(f"{'chosen':>7} {'reached':>7}  in state -> sub-goal (the second play's choices)")
     for (state_key, goal), count in chosen.most_common(30):
         print(f"{count:7d} {reached[state_key, goal]:7d}  {state_key} -> {goal}")
@@ -207,7 +224,8 @@ def main() -> None:
         pathlib.Path(args.out).write_text(json.dumps(dict(
             model=model_path, env=args.env, deterministic=deterministic, seed=args.seed, chooser=args.chooser,
             solved_chooser=solved, solved_model=int(sum(own)), agreement=dict(agree),
-            ceiling=ceiling if args.chooser == "oracle" else None, episodes=episodes), indent=1))
+            ceiling=ceiling if args.chooser == "oracle" else None,
+            departures=departed if args.chooser == "oracle" else None, episodes=episodes), indent=1))
 
 
 if __name__ == "__main__":
