@@ -145,7 +145,8 @@ def test_question_coverage_counts_each_sub_goals_questions_and_outcomes() -> Non
 def test_the_oracles_chooser_takes_the_plans_first_choosable_milestone_not_ruled_out() -> None:
     """oracle_choices.py: in DoorKey's first state the plan's first milestone among the sub-goals is the walk to the
     key; ruled out (as predict rules out a sub-goal that just gave up), the plan names no other sub-goal here, and
-    the model's own choice stands (counted as not planned)."""
+    the model's own choice stands (counted as not planned). The predictor's best score is judged among every choice
+    predict may make there, the plan's or not."""
     from benchmarks.diagnostics.oracle_choices import oracle_chooser
     from sb3_hhp import HhP
     from sb3_hhp.oracles import make_oracle
@@ -171,10 +172,18 @@ def test_the_oracles_chooser_takes_the_plans_first_choosable_milestone_not_ruled
     walk_to_key = keys.index((EMPTY, KEY, 0))
     own = np.array([(walk_to_key + 1) % len(keys)])
     excluded = np.zeros((1, len(model.subgoals)), dtype=bool)  # predict's shape
-    assert choose(obs[None], own, excluded)[0] == walk_to_key and planned == [True] and agree["choices"] == 1
+    # the predictor's best score counts among every choice predict may make, off the plan too: here the walk to the
+    # locked door, choosable and not on the plan, best scored, departs from the plan
+    off_plan = keys.index((EMPTY, DOOR, 2))
+    assert model.action_mask(obs[None])[0, off_plan]
+    for best, agreed in ((off_plan, 0), (walk_to_key, 1)):
+        model.predictor.score_matrix = lambda states, goals, best=best: np.eye(len(keys))[best][None]
+        choose(obs[None], own, excluded)
+        assert agree["predictor"] == agreed
+    assert choose(obs[None], own, excluded)[0] == walk_to_key and planned == [True] * 3 and agree["choices"] == 3
     excluded[0, walk_to_key] = True
-    assert choose(obs[None], own, excluded)[0] != walk_to_key and planned == [True, False]
-    assert agree["choices"] == 1
+    assert choose(obs[None], own, excluded)[0] != walk_to_key and planned == [True] * 3 + [False]
+    assert agree["choices"] == 3
 
 
 def test_the_feature_ceiling_counts_per_alike_input_the_most_often_best_sub_goal() -> None:

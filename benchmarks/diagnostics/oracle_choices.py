@@ -45,8 +45,8 @@ def oracle_chooser(model: HhP, oracle: Any, env: gym.Env, planned: list, agree: 
     first milestone of the oracle's plan from the env's state among the choosable sub-goals not ruled out; the
     model's own choice where the plan names none of them. Appends to ``planned`` whether the plan chose, and counts
     in ``agree`` the plan's choices (``choices``) and those the meta-controller's choice (``meta``) and the
-    predictor's best-scored sub-goal (``predictor``), among the same ones, would have matched (a tie on the plan
-    counts); appends to ``records`` (where given), for each choice the plan made, what the predictor reads of the
+    predictor's best-scored sub-goal (``predictor``), among the same ones (the plan's or not), would have matched (a
+    tie on the plan counts); appends to ``records`` (where given), for each choice the plan made, what the predictor reads of the
     state, the plan's ranks of every sub-goal (inf: not choosable), the choosable
     sub-goals, the plan's best ones, the state's description (:func:`feature_ceiling` reads them) and the predictor's
     and the meta-controller's choices (:func:`departures`)."""
@@ -60,14 +60,15 @@ def oracle_chooser(model: HhP, oracle: Any, env: gym.Env, planned: list, agree: 
         carried = state["carrying"][0] if state.get("carrying") is not None else EMPTY
         ranks = np.array([oracle.rank(plan, key, carried) for key in keys])
         mask = model.action_mask(batch)
+        allowed = ~excluded[0, : len(ranks)]  # the choices predict may make here, on the plan or off it
         if mask is not None:
-            ranks[~np.broadcast_to(mask, (len(batch), mask.shape[-1]))[0, : len(ranks)]] = np.inf
-        ranks[excluded[0, : len(ranks)]] = np.inf
+            allowed &= np.broadcast_to(mask, (len(batch), mask.shape[-1]))[0, : len(ranks)]
+        ranks[~allowed] = np.inf
         planned.append(bool(np.isfinite(ranks).any()))
         if planned[-1]:  # would the meta-controller, or the predictor's best score, have chosen as the plan does?
             reads = model.predictor_inputs(batch)[0]
             scores = model.predictor.score_matrix(reads[None], goal_inputs)[0]
-            scores[~np.isfinite(ranks)] = -np.inf
+            scores[~allowed] = -np.inf  # among the same choices as the meta-controller: off the plan too
             agree["meta"] += int(ranks[own[0]] == ranks.min())
             agree["predictor"] += int(ranks[scores.argmax()] == ranks.min())
             agree["choices"] += 1
