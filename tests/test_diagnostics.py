@@ -168,7 +168,8 @@ def test_the_oracles_chooser_takes_the_plans_first_choosable_milestone_not_ruled
     obs, _ = env.reset(seed=3)
     planned: list = []
     agree = Counter()
-    choose = oracle_chooser(model, oracle, env, planned, agree)
+    records: list = []
+    choose = oracle_chooser(model, oracle, env, planned, agree, records)
     walk_to_key = keys.index((EMPTY, KEY, 0))
     own = np.array([(walk_to_key + 1) % len(keys)])
     excluded = np.zeros((1, len(model.subgoals)), dtype=bool)  # predict's shape
@@ -180,6 +181,7 @@ def test_the_oracles_chooser_takes_the_plans_first_choosable_milestone_not_ruled
         model.predictor.score_matrix = lambda states, goals, best=best: np.eye(len(keys))[best][None]
         choose(obs[None], own, excluded)
         assert agree["predictor"] == agreed
+    assert off_plan in records[0]["choosable"] and records[0]["best"] == (walk_to_key,)
     assert choose(obs[None], own, excluded)[0] == walk_to_key and planned == [True] * 3 and agree["choices"] == 3
     excluded[0, walk_to_key] = True
     assert choose(obs[None], own, excluded)[0] != walk_to_key and planned == [True] * 3 + [False]

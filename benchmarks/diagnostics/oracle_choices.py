@@ -46,9 +46,9 @@ def oracle_chooser(model: HhP, oracle: Any, env: gym.Env, planned: list, agree: 
     model's own choice where the plan names none of them. Appends to ``planned`` whether the plan chose, and counts
     in ``agree`` the plan's choices (``choices``) and those the meta-controller's choice (``meta``) and the
     predictor's best-scored sub-goal (``predictor``), among the same ones (the plan's or not), would have matched (a
-    tie on the plan counts); appends to ``records`` (where given), for each choice the plan made, what the predictor reads of the
-    state, the plan's ranks of every sub-goal (inf: not choosable), the choosable
-    sub-goals, the plan's best ones, the state's description (:func:`feature_ceiling` reads them) and the predictor's
+    tie on the plan counts); appends to ``records`` (where given), for each choice the plan made, what the predictor
+    reads of the state, the plan's ranks of every sub-goal (inf: not choosable, or off the plan), the choosable
+    sub-goals (on the plan or off it), the plan's best ones, the state's description (:func:`feature_ceiling` reads them) and the predictor's
     and the meta-controller's choices (:func:`departures`)."""
     keys = [goal.key for goal in model.subgoals]
     goal_inputs = model.predictor_inputs(model.goal_obs)  # the sub-goals stay the same while the model plays
@@ -74,7 +74,7 @@ def oracle_chooser(model: HhP, oracle: Any, env: gym.Env, planned: list, agree: 
             agree["choices"] += 1
             if records is not None:
                 records.append(dict(inputs=reads, ranks=ranks.copy(),
-                                    choosable=tuple(np.flatnonzero(np.isfinite(ranks)).tolist()),
+                                    choosable=tuple(np.flatnonzero(allowed).tolist()),
                                     best=tuple(np.flatnonzero(ranks == ranks.min()).tolist()),
                                     state=model.goal_space.describe(model.goal_space.key(batch[0])),
                                     predictor=int(scores.argmax()), meta=int(own[0])))
