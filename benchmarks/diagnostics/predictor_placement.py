@@ -1,8 +1,8 @@
 """Where must a question be asked for the predictor to learn a plan? Labels placed on the states a plan goes through.
 
-``oracle_choices.py`` showed that on ObstructedMaze-1Q a run's predictor matched the scripted oracle's plan in 64-79 %
-of the plan's choices while what it reads allowed 92-96 % (its feature ceiling), and that it fitted every label it had
-(``predictor_labels.py``). This asks whether a hundred labels can bring a predictor of the same kind near that ceiling
+``oracle_choices.py`` showed that on ObstructedMaze-1Q a run's predictor made the scripted oracle's plan's choice in
+fewer than half of the plan's choices while what it reads allowed about 0.9 of them (its feature ceiling), and that it
+fitted every label it had (``predictor_labels.py``). This asks whether a hundred labels can bring a predictor of the same kind near that ceiling
 when the questions are asked where the plan goes, and which pair of sub-goals a question should name there.
 
 A run's model plays ``--train-episodes`` fresh episodes with the scripted oracle's plan choosing (its learners
