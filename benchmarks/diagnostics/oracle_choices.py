@@ -48,8 +48,8 @@ def oracle_chooser(model: HhP, oracle: Any, env: gym.Env, planned: list, agree: 
     predictor's best-scored sub-goal (``predictor``), among the same ones (the plan's or not), would have matched (a
     tie on the plan counts); appends to ``records`` (where given), for each choice the plan made, what the predictor
     reads of the state, the plan's ranks of every sub-goal (inf: not choosable, or off the plan), the choosable
-    sub-goals (on the plan or off it), the plan's best ones, the state's description (:func:`feature_ceiling` reads them) and the predictor's
-    and the meta-controller's choices (:func:`departures`)."""
+    sub-goals (on the plan or off it), the plan's best ones, the state's description (:func:`feature_ceiling` reads
+    them) and the predictor's and the meta-controller's choices (:func:`departures`)."""
     keys = [goal.key for goal in model.subgoals]
     goal_inputs = model.predictor_inputs(model.goal_obs)  # the sub-goals stay the same while the model plays
 

@@ -2,8 +2,9 @@
 
 ``oracle_choices.py`` showed that on ObstructedMaze-1Q a run's predictor made the scripted oracle's plan's choice in
 fewer than half of the plan's choices while what it reads allowed about 0.9 of them (its feature ceiling), and that it
-fitted every label it had (``predictor_labels.py``). This asks whether a hundred labels can bring a predictor of the same kind near that ceiling
-when the questions are asked where the plan goes, and which pair of sub-goals a question should name there.
+fitted every label it had (``predictor_labels.py``). This asks whether a hundred labels can bring a predictor of the
+same kind near that ceiling when the questions are asked where the plan goes, and which pair of sub-goals a question
+should name there.
 
 A run's model plays ``--train-episodes`` fresh episodes with the scripted oracle's plan choosing (its learners
 acting, as in ``oracle_choices.py``; seeds from ``--train-seed``) and ``--test-episodes`` more (seeds from
