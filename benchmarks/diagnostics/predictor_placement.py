@@ -215,9 +215,7 @@ def main() -> None:
           f"training episodes, {len(test)} in {args.test_episodes} test episodes ({time.perf_counter() - start:.0f} s)")
     print(f"test choices: the run's own predictor matches {run_predictor:.2f}; the feature ceiling "
           f"{ceiling['ceiling'] / max(ceiling['choices'], 1):.2f}")
-    # the run's predictor settings less what HhP reads of them itself (``input``: what the predictor reads)
-    settings = {**{key: value for key, value in model.predictor_kwargs.items() if key != "input"},
-                "buffer_size": max(args.labels), **args.predictor_kwargs}
+    settings = {**model.predictor_settings, "buffer_size": max(args.labels), **args.predictor_kwargs}
     space = model.predictor.observation_space
     curves: dict = {}
     for rule in args.pairs:

@@ -375,7 +375,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         obs_space = self.primitive_observation_space
         self.rnd = RND(obs_space, device=device, seed=self.seed, **self.rnd_kwargs) if self.use_curiosity else None
         predictor_kwargs = dict(buffer_size=max(1, self.query_budget), device=device, seed=self.seed)
-        predictor_kwargs.update({key: value for key, value in self.predictor_kwargs.items() if key != "input"})
+        predictor_kwargs.update(self.predictor_settings)
         self._predictor_reads_features = self._reads_features("predictor_kwargs['input']", self.predictor_input)
         predictor_space = (
             spaces.Box(-np.inf, np.inf, (self.goal_space.features_dim(obs_space),), np.float32)
@@ -517,6 +517,12 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         discounts = np.power(self.gamma, self._choice_steps[rows], dtype=np.float64).astype(np.float32)
         return th.as_tensor(discounts, device=replay_data.rewards.device).reshape(-1, 1)
 
+    @property
+    def predictor_settings(self) -> dict[str, Any]:
+        """The keys of ``predictor_kwargs`` that :class:`~sb3_hhp.preferences.predictor.PreferencePredictor` takes
+        (all but ``input``, what HhP gives it to read)."""
+        return {key: value for key, value in self.predictor_kwargs.items() if key != "input"}
+
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
         """N_opt meta-controller updates for each episode that just ended (Algorithm 1 lines 30-34), once the meta
         buffer holds a batch. With ``meta_kwargs["steps_per_update"]`` = K, no more than the rollout's primitive steps
@@ -527,7 +533,7 @@ class HhP(HierarchicalActing, PreferenceBonus, BetweenEpisodes, DoubleDQN):
         if self.replay_buffer is None or self.replay_buffer.size() < batch_size:
             return
         due = gradient_steps * max(1, self._rollout_episodes)
-        per_choice = self.meta_kwargs.get("choices_per_update")
+        per_choice = self.meta_kwargs.get("choices_per_update")  # (absent from a model saved before the option)
         if per_choice is not None:
             self._choice_allowance += self._rollout_choices / per_choice
             by_choices = int(self._choice_allowance)
